@@ -1,0 +1,304 @@
+"""Ring-down fits: plain CRDS (b + B exp(-t/tau)) and TF-CRDS (S_fit), batched.
+
+Both models are ``b + B g(t; tau)``: linear in the offset b and amplitude B, which are solved
+exactly inside the fit (variable projection), so the nonlinear search is one-dimensional per
+transient. All transients (spectral points x truncation times) are iterated together with a
+damped Gauss-Newton step on tau; the TF-CRDS fit starts from the CRDS solution.
+
+Units: time and tau in s, signals and noise in V.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .linalg import covariance_from_fisher
+from .forward import WINDOWS, filtered_response, first_index_at, grid_transfer_function, model_grids
+from .transfer_function import TFParams
+
+METHODS = ("crds", "tf-crds")
+
+
+@dataclass(frozen=True)
+class TransientFits:
+    """Fits of n transients (flattened rows). ``cov`` is over (B, b, tau) per row.
+
+    ``noise_v`` is the per-sample standard deviation used for the weights: the supplied one,
+    or, where none was supplied (``noise_estimated``), the residual RMS, in which case chi2_red
+    is 1 by construction and the covariance is scaled by it.
+    """
+
+    tau_s: np.ndarray
+    tau_u_s: np.ndarray
+    amplitude_v: np.ndarray
+    offset_v: np.ndarray
+    cov: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    noise_v: np.ndarray
+    noise_estimated: bool
+    converged: np.ndarray
+    t_cut_s: np.ndarray
+    method: str
+    window: str | None
+    residuals_v: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def chi2_red(self) -> np.ndarray:
+        return self.chi2 / np.maximum(self.dof, 1)
+
+
+def _weighted_sums(wm, g, y):
+    s1 = wm.sum(-1)
+    sg = (wm * g).sum(-1)
+    sgg = (wm * g * g).sum(-1)
+    sy = (wm * y).sum(-1)
+    sgy = (wm * g * y).sum(-1)
+    return s1, sg, sgg, sy, sgy
+
+
+def _solve_linear(wm, g, y):
+    """Weighted least-squares B, b for y ~ B g + b on the masked samples (rows batched)."""
+    s1, sg, sgg, sy, sgy = _weighted_sums(wm, g, y)
+    det = s1 * sgg - sg * sg
+    amp = (s1 * sgy - sg * sy) / det
+    off = (sgg * sy - sg * sgy) / det
+    return amp, off
+
+
+def _three_interval_tau(t, y, mask):
+    """Model-free starting tau: for y = b + B exp(-t/tau), sums over three equal consecutive
+    intervals satisfy (S2 - S3)/(S1 - S2) = exp(-D/tau)."""
+    n = mask.sum(-1)
+    first = np.argmax(mask, axis=-1)
+    n3 = np.maximum(n // 3, 1)
+    cs = np.concatenate([np.zeros((y.shape[0], 1)), np.cumsum(np.where(mask, y, 0.0), axis=-1)], axis=-1)
+    r = np.arange(y.shape[0])
+
+    def seg(i0, i1):
+        return cs[r, i1] - cs[r, i0]
+
+    s1 = seg(first, first + n3)
+    s2 = seg(first + n3, first + 2 * n3)
+    s3 = seg(first + 2 * n3, first + 3 * n3)
+    dt = t[1] - t[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        rho = (s2 - s3) / (s1 - s2)
+        tau = -n3 * dt / np.log(rho)
+    fallback = (n * dt) / 5.0
+    return np.where(np.isfinite(tau) & (tau > 0), tau, fallback)
+
+
+class _Crds:
+    """g = exp(-(t - t_cut)/tau): B is the amplitude at t_cut."""
+
+    def __init__(self, t, t_cut):
+        self.dtau = t[None, :] - t_cut[:, None]
+
+    def __call__(self, tau, rows, derivative=True):
+        x = self.dtau[rows] / tau[:, None]
+        g = np.exp(-np.clip(x, -700, 700))
+        if not derivative:
+            return g
+        return g, g * x / tau[:, None]
+
+
+class _TfCrds:
+    """g = IFFT(FFT(x) H) on the window's grid, grouped by grid (one per t_cut for ``letter``)."""
+
+    def __init__(self, t, t_cut, tf, window):
+        dt = float(t[1] - t[0])
+        uniq, self.group = np.unique(t_cut, return_inverse=True)
+        self.grids = model_grids(float(t[0]), dt, t.size, uniq, tf, window)
+        self.h = [grid_transfer_function(g, tf) for g in self.grids]
+
+    def __call__(self, tau, rows, derivative=True):
+        g = np.empty((rows.size, self.grids[0].n_data))
+        dg = np.empty_like(g) if derivative else None
+        grp = self.group[rows]
+        for gi in np.unique(grp):
+            sel = np.nonzero(grp == gi)[0]
+            out = filtered_response(tau[sel], self.grids[gi], self.h[gi], derivative=derivative)
+            if derivative:
+                g[sel], dg[sel] = out
+            else:
+                g[sel] = out
+        if not derivative:
+            return g
+        return g, dg
+
+
+def _gauss_newton(model, y, wm, tau0, max_iter=50, rtol=1e-10):
+    """Damped Gauss-Newton on tau with B, b projected out (Kaufman's variable projection)."""
+    tau = tau0.copy()
+    n = tau.size
+    rows = np.arange(n)
+    active = np.ones(n, bool)
+    converged = np.zeros(n, bool)
+    for _ in range(max_iter):
+        idx = rows[active]
+        if idx.size == 0:
+            break
+        g, dg = model(tau[idx], idx)
+        g = np.nan_to_num(g)
+        dg = np.nan_to_num(dg)
+        w = wm[idx]
+        yy = y[idx]
+        amp, off = _solve_linear(w, g, yy)
+        r = yy - amp[:, None] * g - off[:, None]
+        v = amp[:, None] * dg
+        # remove from v its weighted projection on span{g, 1}
+        pa, pb = _solve_linear(w, g, v)
+        vp = v - pa[:, None] * g - pb[:, None]
+        num = (w * vp * r).sum(-1)
+        den = (w * vp * vp).sum(-1)
+        step = np.where(den > 0, num / den, 0.0)
+        step = np.clip(step, -0.3 * tau[idx], 0.5 * tau[idx])
+        tau[idx] = tau[idx] + step
+        done = np.abs(step) <= rtol * tau[idx]
+        converged[idx[done]] = True
+        active[idx[done]] = False
+    return tau, converged
+
+
+def _noise_rows(noise_v, n_rows, n_samples, rows_of):
+    if noise_v is None:
+        return None
+    nz = np.asarray(noise_v, float)
+    if nz.ndim == 1:
+        return np.broadcast_to(nz[rows_of][:, None], (n_rows, n_samples))
+    return nz[rows_of]
+
+
+def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None = None,
+                   window: str | None = "extinction", noise_v=None, rows_of=None,
+                   keep_residuals: bool = False, tau_start_s=None) -> TransientFits:
+    """Fit transients; each row r fits ``signal_v[rows_of[r]]`` on t >= ``t_cut_s[r]``.
+
+    ``time_s`` (k,) uniformly spaced (s, relative to extinction); ``signal_v`` (m, k) V;
+    ``t_cut_s`` (n,) s; ``noise_v`` None, (m,) or (m, k) V; ``rows_of`` (n,) transient index of
+    each row (default: row r fits transient r). ``method`` is ``crds`` or ``tf-crds`` (the latter
+    needs ``tf`` and a ``window``).
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+    t = np.asarray(time_s, float)
+    sig = np.asarray(signal_v, float)
+    t_cut = np.atleast_1d(np.asarray(t_cut_s, float))
+    rows_of = np.arange(t_cut.size) if rows_of is None else np.asarray(rows_of)
+    n = t_cut.size
+    dt = t[1] - t[0]
+    if np.any(t_cut >= t[-1] - 8 * dt):
+        bad = t_cut[t_cut >= t[-1] - 8 * dt][0]
+        raise ValueError(f"t_cut = {bad:g} s is beyond the record (last sample at {t[-1]:g} s)")
+    if np.any(t_cut < 0):
+        raise ValueError("t_cut is counted from laser extinction and must be >= 0 s")
+    y = sig[rows_of]
+    first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut])
+    mask = np.arange(t.size)[None, :] >= first[:, None]
+    noise = _noise_rows(noise_v, n, t.size, rows_of)
+    wm = mask / noise**2 if noise is not None else mask.astype(float)
+
+    crds = _Crds(t, t_cut)
+    tau0 = _three_interval_tau(t, y, mask) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
+    tau, conv = _gauss_newton(crds, y, wm, tau0)
+    model = crds
+    if method == "tf-crds":
+        if tf is None or window not in WINDOWS:
+            raise ValueError("tf-crds needs a transfer function and a window "
+                             f"({WINDOWS}), got tf={tf!r}, window={window!r}")
+        model = _TfCrds(t, t_cut, tf, window)
+        tau, conv = _gauss_newton(model, y, wm, tau)
+    else:
+        window = None
+
+    g, dg = model(tau, np.arange(n))
+    g = np.nan_to_num(g)
+    dg = np.nan_to_num(dg)
+    amp, off = _solve_linear(wm, g, y)
+    resid = np.where(mask, y - amp[:, None] * g - off[:, None], 0.0)
+    n_used = mask.sum(-1)
+    dof = n_used - 3
+    if noise is None:
+        s2 = (resid**2).sum(-1) / np.maximum(dof, 1)
+        noise_used = np.sqrt(s2)
+        wm = mask / s2[:, None]
+    else:
+        noise_used = np.sqrt((noise**2 * mask).sum(-1) / n_used)
+    chi2 = (wm * resid**2).sum(-1)
+    # Fisher matrix over (B, b, tau)
+    cols = (g, np.ones_like(g), amp[:, None] * dg)
+    fisher = np.empty((n, 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            fisher[:, i, j] = fisher[:, j, i] = (wm * cols[i] * cols[j]).sum(-1)
+    cov = covariance_from_fisher(fisher)
+    return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
+                         chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=noise is None,
+                         converged=conv, t_cut_s=t_cut, method=method, window=window,
+                         residuals_v=resid if keep_residuals else None)
+
+
+@dataclass(frozen=True)
+class RingdownFits:
+    """Fits of every spectral point at every t_cut: arrays shaped (m points, c t_cuts).
+
+    Transients flagged as clipped are not fitted: their entries are NaN and ``clipped`` is set.
+    """
+
+    nu_hz: np.ndarray
+    t_cut_s: np.ndarray
+    tau_s: np.ndarray
+    tau_u_s: np.ndarray
+    amplitude_v: np.ndarray
+    offset_v: np.ndarray
+    chi2_red: np.ndarray
+    converged: np.ndarray
+    clipped: np.ndarray
+    method: str
+    window: str | None
+    noise_estimated: bool
+    residuals_v: np.ndarray | None = field(default=None, repr=False)
+
+    def rows(self):
+        """(nu_hz, t_cut_s, tau_s, tau_u_s, chi2_red, status) per point and t_cut."""
+        for i, nu in enumerate(self.nu_hz):
+            for j, tc in enumerate(self.t_cut_s):
+                status = "clipped" if self.clipped[i] else ("ok" if self.converged[i, j] else "not-converged")
+                yield nu, tc, self.tau_s[i, j], self.tau_u_s[i, j], self.chi2_red[i, j], status
+
+
+def fit_ringdowns(ringdowns, t_cuts_s, method="crds", tf: TFParams | None = None, window="extinction",
+                  keep_residuals: bool = False) -> RingdownFits:
+    """Fit every transient of a bundle's ``RingdownData`` at every t_cut (s).
+
+    Clipped transients (``ringdowns.clipped``) are excluded and reported, never fitted as if
+    they were fine.
+    """
+    t_cuts = np.atleast_1d(np.asarray(t_cuts_s, float))
+    m, c = ringdowns.signal_v.shape[0], t_cuts.size
+    clipped = np.asarray(ringdowns.clipped, bool)
+    good = np.nonzero(~clipped)[0]
+    rows_of = np.repeat(good, c)
+    tc = np.tile(t_cuts, good.size)
+    shape = (m, c)
+    out = {k: np.full(shape, np.nan) for k in ("tau", "tau_u", "amp", "off", "chi2r")}
+    conv = np.zeros(shape, bool)
+    resid = None
+    est = ringdowns.noise_v is None
+    if good.size:
+        fits = fit_transients(ringdowns.time_s, ringdowns.signal_v, tc, method=method, tf=tf, window=window,
+                              noise_v=ringdowns.noise_v, rows_of=rows_of, keep_residuals=keep_residuals)
+        for key, arr in (("tau", fits.tau_s), ("tau_u", fits.tau_u_s), ("amp", fits.amplitude_v),
+                         ("off", fits.offset_v), ("chi2r", fits.chi2_red)):
+            out[key][good] = arr.reshape(good.size, c)
+        conv[good] = fits.converged.reshape(good.size, c)
+        est = fits.noise_estimated
+        if keep_residuals:
+            resid = np.full((m, c, ringdowns.signal_v.shape[1]), np.nan)
+            resid[good] = fits.residuals_v.reshape(good.size, c, -1)
+    return RingdownFits(nu_hz=np.asarray(ringdowns.nu_hz), t_cut_s=t_cuts, tau_s=out["tau"], tau_u_s=out["tau_u"],
+                        amplitude_v=out["amp"], offset_v=out["off"], chi2_red=out["chi2r"], converged=conv,
+                        clipped=clipped, method=method, window=window if method == "tf-crds" else None,
+                        noise_estimated=est, residuals_v=resid)
