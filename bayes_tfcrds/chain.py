@@ -7,7 +7,13 @@ form response to the ring-down input ``x(t) = 1`` (t < 0), ``exp(-t/tau)`` (t >=
     y(t) = sum_i r_i [ exp(p_i t) (1/(p_i + 1/tau) - 1/p_i) - exp(-t/tau)/(p_i + 1/tau) ],  t >= 0
     y(t) = H(0),                                                                                t < 0
 
-sampled exactly at any instant. Units: poles in rad/s, times in s.
+sampled exactly at any instant, and for an input that starts at t = 0 from nothing,
+``x(t) = exp(lam t)`` (t >= 0, complex lam allowed):
+
+    y(t) = sum_i r_i (exp(p_i t) - exp(lam t)) / (p_i - lam) + D x(t).
+
+A direct term D (H(s) -> D at high frequency) describes an ideal chain (D = 1, no poles).
+Units: poles and lam in rad/s (1/s), times in s.
 """
 from __future__ import annotations
 
@@ -24,6 +30,7 @@ class RationalChain:
 
     poles: tuple
     residues: tuple
+    direct: float = 0.0
 
     def __post_init__(self):
         p = np.asarray(self.poles, complex)
@@ -32,13 +39,29 @@ class RationalChain:
 
     @property
     def dc_gain(self) -> float:
-        p, r = np.asarray(self.poles), np.asarray(self.residues)
-        return float(np.real(np.sum(-r / p)))
+        p, r = np.asarray(self.poles, complex), np.asarray(self.residues, complex)
+        return float(np.real(np.sum(-r / p))) + self.direct if p.size else self.direct
 
     def frequency_response(self, f_hz) -> np.ndarray:
         """H(f) at frequencies f (Hz), dimensionless."""
         s = 2j * np.pi * np.asarray(f_hz, float)[..., None]
-        return np.sum(np.asarray(self.residues) / (s - np.asarray(self.poles)), axis=-1)
+        return np.sum(np.asarray(self.residues, complex) / (s - np.asarray(self.poles, complex)), axis=-1) \
+            + self.direct
+
+    def causal_exponential_response(self, t_s, lam) -> np.ndarray:
+        """Complex response at times t (s) to exp(lam t) switched on at t = 0 (lam in 1/s).
+
+        ``lam`` of shape (n,) and ``t_s`` of shape (k,) give (n, k); zero for t < 0.
+        """
+        t = np.asarray(t_s, float)[None, :, None]
+        lam = np.asarray(lam, complex).reshape(-1, 1, 1)
+        tp = np.clip(t, 0.0, None)
+        y = self.direct * np.exp(lam[..., 0] * tp[..., 0])
+        if len(self.poles):
+            p = np.asarray(self.poles, complex)[None, None, :]
+            r = np.asarray(self.residues, complex)[None, None, :]
+            y = y + np.sum(r * (np.exp(p * tp) - np.exp(lam * tp)) / (p - lam), axis=-1)
+        return np.where(t[..., 0] < 0, 0.0, y)
 
     def ringdown_response(self, t_s, tau_s) -> np.ndarray:
         """Exact response (dimensionless, steady level 1) at times t (s) for decay times tau (s).
@@ -50,20 +73,38 @@ class RationalChain:
         p = np.asarray(self.poles, complex)[None, None, :]
         r = np.asarray(self.residues, complex)[None, None, :]
         tp = np.clip(t, 0.0, None)
-        inv = 1.0 / (p + 1.0 / tau)
-        terms = r * (np.exp(p * tp) * (inv - 1.0 / p) - np.exp(-tp / tau) * inv)
-        y = np.real(terms.sum(-1))
+        y = self.direct * np.exp(-tp[..., 0] / tau[..., 0])
+        if len(self.poles):
+            inv = 1.0 / (p + 1.0 / tau)
+            terms = r * (np.exp(p * tp) * (inv - 1.0 / p) - np.exp(-tp / tau) * inv)
+            y = y + np.real(terms.sum(-1))
         return np.where(t[..., 0] < 0, self.dc_gain, y)
 
     def impulse_response(self, t_s) -> np.ndarray:
-        """h(t) in 1/s at times t (s); zero for t < 0."""
+        """h(t) in 1/s at times t (s), zero for t < 0 (the direct term's delta is omitted)."""
         t = np.asarray(t_s, float)[..., None]
         h = np.real(np.sum(np.asarray(self.residues) * np.exp(np.asarray(self.poles) * np.clip(t, 0, None)), -1))
         return np.where(t[..., 0] < 0, 0.0, h)
 
     def slowest_time_s(self) -> float:
         """Longest pole time constant (s): how long the chain remembers its input."""
+        if not len(self.poles):
+            return 0.0
         return float(np.max(-1.0 / np.asarray(self.poles).real))
+
+    def with_optical_pole(self, tau_x_s: float) -> "RationalChain":
+        """This chain in series with 1/(1 + s tau_x) (residues recomputed; unit DC gain kept)."""
+        wx = 1.0 / tau_x_s
+        p = np.asarray(self.poles, complex)
+        r = np.asarray(self.residues, complex)
+        lx = wx / (p + wx)
+        new_p = np.append(p, -wx)
+        h_at = (np.sum(r / (-wx - p)) if p.size else 0.0) + self.direct
+        new_r = np.append(r * lx, wx * h_at)
+        return RationalChain(poles=tuple(new_p), residues=tuple(new_r), direct=0.0)
+
+
+IDEAL_CHAIN = RationalChain(poles=(), residues=(), direct=1.0)
 
 
 def _second_order(w_r: float, q: float, gain: float):

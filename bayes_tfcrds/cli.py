@@ -10,6 +10,8 @@ import csv
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from . import __version__
 
 
@@ -81,6 +83,47 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_simulate(args) -> int:
+    from .bundle import save_bundle
+    from .simulate import Campaign, parse_effect, simulate_campaign
+    effects = {}
+    try:
+        for text in args.effect or []:
+            name, params = parse_effect(text)
+            effects[name] = params
+        campaign = Campaign() if args.points is None else Campaign(n_points=args.points)
+        if args.samples is not None:
+            from dataclasses import replace
+            campaign = replace(campaign, n_samples=args.samples)
+        rng = np.random.default_rng(args.seed)
+        bundle, truth = simulate_campaign(args.preset or ["letter-D2"], rng, campaign, effects)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    save_bundle(bundle, args.output, truth=truth)
+    print(f"wrote {args.output}: configurations {list(bundle.configs)}, "
+          f"{campaign.n_points} points x {campaign.n_samples} samples, seed {args.seed}", file=sys.stderr)
+    return 0
+
+
+def cmd_linefit(args) -> int:
+    import json
+    from .linefit import LineFitError, analyse_line
+    bundle = _load(args.file)
+    config = _config(bundle, args.config)
+    try:
+        result = analyse_line(bundle, config, method=args.method, window=args.window, t_cut_s=args.tcut[0],
+                              profile_name=args.profile)
+    except (LineFitError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    atomic_write_text(Path(args.output), json.dumps(result, indent=2) + "\n")
+    la, ra = result["line_area"], result["reference_area"]
+    print(f"A = {la['value']:.6e} +/- {la['u']:.2e} {la['unit']}; A_ref = {ra['value']:.6e} +/- {ra['u']:.2e}; "
+          f"A/A_ref = {result['ratio']['value']:.5f} +/- {result['ratio']['u']:.5f}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bayes-tfcrds", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"bayes-tfcrds {__version__}")
@@ -105,6 +148,24 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="CSV file to write")
     sp.set_defaults(func=cmd_fit)
 
+    sp = common(sub.add_parser("simulate", help="simulate a letter-like campaign into a bundle"))
+    sp.add_argument("--preset", action="append", help="letter-D1 ... letter-D4 (repeatable; default letter-D2)")
+    sp.add_argument("--effect", action="append", help="NAME[:key=value,...] (repeatable), e.g. "
+                    "static_nonlinearity:beta=-3e-3")
+    sp.add_argument("--points", type=int, help="number of spectral points (default 101)")
+    sp.add_argument("--samples", type=int, help="samples per transient (default 16384)")
+    sp.add_argument("-o", "--output", required=True)
+    sp.set_defaults(func=cmd_simulate)
+
+    sp = common(sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS"))
+    sp.add_argument("file")
+    sp.add_argument("--config")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
+    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
+    sp.add_argument("--tcut", type=_floats, default=[4e-6], help="one t_cut in s")
+    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
+    sp.add_argument("-o", "--output", required=True)
+    sp.set_defaults(func=cmd_linefit)
     return p
 
 

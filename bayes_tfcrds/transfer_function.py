@@ -222,7 +222,8 @@ def fit_beat_note(tf_data, variant: str = "causal", free=PARAM_NAMES, start: TFP
     logp = np.array([n != "a_r" for n in free])
 
     def unpack(x, base):
-        v = np.where(logp, np.exp(x[:-1]), x[:-1])
+        with np.errstate(over="ignore"):
+            v = np.where(logp, np.exp(x[:-1]), x[:-1])
         return base.with_vector(v, free), x[-1]
 
     def resid(x, base):
