@@ -108,6 +108,7 @@ def letter_grid(t0_s: float, dt_s: float, n_samples: int, t_cut_s: float) -> Gri
 
 @lru_cache(maxsize=32)
 def _grid_terms(grid: Grid):
+    """tau-independent pieces of the closed-form spectrum on one grid (cached)."""
     k = np.arange(grid.n_fft // 2 + 1)
     phase = -2.0 * np.pi * k / grid.n_fft
     wk = np.exp(1j * phase)
@@ -123,17 +124,13 @@ def _grid_terms(grid: Grid):
         shape = _ramp_shape(grid.n_ramp)
         c[grid.m_ramp:] = shape
         c1[grid.m_ramp:] = 1.0 - shape
-    ramp_one, ramp_ve = sfft.rfft(c), sfft.rfft(c1)
+    fixed = flat + sfft.rfft(c)
+    ramp_ve = sfft.rfft(c1)
+    # 1 - q w^k = -(expm1(x) cos(phase) + cosm1(phase)) - i e^x sin(phase), x = -dt/tau:
+    # exact near k = 0 and tau >> dt, where the plain difference would cancel
+    trig = (np.cos(phase), -2.0 * np.sin(0.5 * phase) ** 2, np.sin(phase))
     f_hz = k / (grid.n_fft * grid.dt_s)
-    return phase, wkm0, wkmr, flat, ramp_one, ramp_ve, f_hz
-
-
-def _expm1c(x, y):
-    """exp(x + i y) - 1 without cancellation for small |x + i y| (x, y real arrays)."""
-    em1 = np.expm1(x)
-    re = em1 * np.cos(y) - 2.0 * np.sin(0.5 * y) ** 2
-    im = np.exp(x) * np.sin(y)
-    return re + 1j * im
+    return fixed, wkm0, wkmr, ramp_ve, trig, f_hz
 
 
 def input_spectrum(tau_s, grid: Grid, derivative: bool = False):
@@ -142,7 +139,7 @@ def input_spectrum(tau_s, grid: Grid, derivative: bool = False):
     Returns X with shape (n_tau, n_fft//2 + 1) and, with ``derivative``, dX/dtau (1/s).
     """
     tau = np.asarray(tau_s, float).reshape(-1, 1)
-    phase, wkm0, wkmr, flat, ramp_one, ramp_ve, _ = _grid_terms(grid)
+    fixed, wkm0, wkmr, ramp_ve, (cos_p, cosm1_p, sin_p), _ = _grid_terms(grid)
     dt = grid.dt_s
     m0 = grid.m0
     s_m0 = grid.start_s + m0 * dt          # time of the first decaying sample (>= 0)
@@ -150,43 +147,45 @@ def input_spectrum(tau_s, grid: Grid, derivative: bool = False):
     a = np.exp(-s_m0 / tau)
     q_m = np.exp(-big_m * dt / tau)
     v_e = a * q_m                          # the exponential's value where the ramp starts
-    d = -_expm1c(-dt / tau, phase[None, :])        # 1 - q w^k
-    num = wkm0[None, :] - q_m * wkmr[None, :]
-    x = flat[None, :] + a * num / d + ramp_one[None, :] + v_e * ramp_ve[None, :]
+    x = -dt / tau
+    d = -(np.expm1(x) * cos_p + cosm1_p) - 1j * (np.exp(x) * sin_p)      # 1 - q w^k
+    inv_d = 1.0 / d
+    num = wkm0 - q_m * wkmr
+    a_num_d = (a * num) * inv_d
+    spec = fixed + a_num_d + v_e * ramp_ve
     if not derivative:
-        return x
+        return spec
     inv_t2 = 1.0 / tau**2
-    da = a * s_m0 * inv_t2
-    dq_m = q_m * big_m * dt * inv_t2
-    dqw = (1.0 - d) * dt * inv_t2                  # w^k dq/dtau
-    dv_e = v_e * (s_m0 + big_m * dt) * inv_t2
-    dx = (da * num - a * dq_m * wkmr[None, :]) / d + a * num * dqw / d**2 + dv_e * ramp_ve[None, :]
-    return x, dx
+    dx = ((a * s_m0 * inv_t2) * num - (a * q_m * big_m * dt * inv_t2) * wkmr) * inv_d
+    dx += a_num_d * ((1.0 - d) * inv_d) * (dt * inv_t2)
+    dx += (v_e * (s_m0 + big_m * dt) * inv_t2) * ramp_ve
+    return spec, dx
 
 
-def _chunks(n_rows: int, n_fft: int, budget: int = 1 << 22):
+def _chunks(n_rows: int, n_fft: int, budget: int = 1 << 18):
     step = max(1, budget // max(n_fft, 1))
     for i in range(0, n_rows, step):
         yield slice(i, min(n_rows, i + step))
 
 
-def filtered_response(tau_s, grid: Grid, h_k, derivative: bool = False, dh_k=None):
+def filtered_response(tau_s, grid: Grid, h_k, derivative: bool = False, dh_k=None, fill: float = np.nan):
     """g(t; tau) = IFFT(X H) at the data samples covered by ``grid``, batched over tau.
 
     ``h_k`` is H at the grid's rfft frequencies (from :func:`grid_transfer_function`), or None
     for H = 1. Returns arrays of shape (n_tau, n_data) with NaN where the grid does not cover
-    a sample; with ``derivative`` also dg/dtau (1/s); with ``dh_k`` (shape (p, n_freq), the
-    H-parameter derivatives) also dg/dtheta with shape (n_tau, p, n_data).
+    a sample (or ``fill``); with ``derivative`` also dg/dtau (1/s); with ``dh_k`` (shape
+    (p, n_freq), the H-parameter derivatives) also dg/dtheta with shape (n_tau, p, n_data).
     """
     tau = np.atleast_1d(np.asarray(tau_s, float))
     n = tau.size
     lo = grid.first_data
     cols = np.arange(lo, grid.n_data) + grid.data_offset
-    g = np.full((n, grid.n_data), np.nan)
-    dg = np.full((n, grid.n_data), np.nan) if derivative else None
+    alloc = np.empty if lo == 0 else (lambda shape: np.full(shape, fill))
+    g = alloc((n, grid.n_data))
+    dg = alloc((n, grid.n_data)) if derivative else None
     dgt = None
     if dh_k is not None:
-        dgt = np.full((n, dh_k.shape[0], grid.n_data), np.nan)
+        dgt = np.full((n, dh_k.shape[0], grid.n_data), fill)
     for sl in _chunks(n, grid.n_fft * (2 + (0 if dh_k is None else dh_k.shape[0]))):
         if derivative:
             x, dx = input_spectrum(tau[sl], grid, derivative=True)

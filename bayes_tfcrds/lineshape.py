@@ -161,7 +161,7 @@ def _speed_averaged(z0, kappa):
     if np.any(far):
         kf = kappa[far]
         r = s[far] / (2.0 * kf)
-        a[far] = (1.0 / kf) * _one_minus_sqrtpi_r_w(r)
+        a[far] = (2.0 / kf) * _one_minus_sqrtpi_r_w(r)
     return a
 
 

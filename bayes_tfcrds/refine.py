@@ -52,7 +52,7 @@ class RefinedTF:
 
 def _evaluate(t, y, wm, t_cut, tf, free, window, tau_start):
     """Re-fit tau per row under ``tf``; return chi2, tau, residuals and reduced Jacobian."""
-    model = _TfCrds(t, t_cut, tf, window)
+    model = _TfCrds(t, t_cut, tf, window, wm > 0)
     tau, conv = _gauss_newton(model, y, wm, tau_start)
     n, k = y.shape
     p = len(free)
@@ -63,8 +63,7 @@ def _evaluate(t, y, wm, t_cut, tf, free, window, tau_start):
     for gi in np.unique(group):
         sel = np.nonzero(group == gi)[0]
         h, dh = grid_transfer_function(grids[gi], tf, free)
-        g, dg, dgt = filtered_response(tau[sel], grids[gi], h, derivative=True, dh_k=dh)
-        g, dg, dgt = np.nan_to_num(g), np.nan_to_num(dg), np.nan_to_num(dgt)
+        g, dg, dgt = filtered_response(tau[sel], grids[gi], h, derivative=True, dh_k=dh, fill=0.0)
         w = wm[sel]
         amp, off = _solve_linear(w, g, y[sel])
         resid[sel] = np.where(w > 0, y[sel] - amp[:, None] * g - off[:, None], 0.0)

@@ -49,22 +49,18 @@ class TransientFits:
         return self.chi2 / np.maximum(self.dof, 1)
 
 
-def _weighted_sums(wm, g, y):
-    s1 = wm.sum(-1)
-    sg = (wm * g).sum(-1)
-    sgg = (wm * g * g).sum(-1)
-    sy = (wm * y).sum(-1)
-    sgy = (wm * g * y).sum(-1)
-    return s1, sg, sgg, sy, sgy
+def _dot(a, b):
+    """Row-wise dot product in one pass (no temporaries)."""
+    return np.einsum("ij,ij->i", a, b)
 
 
 def _solve_linear(wm, g, y):
     """Weighted least-squares B, b for y ~ B g + b on the masked samples (rows batched)."""
-    s1, sg, sgg, sy, sgy = _weighted_sums(wm, g, y)
+    wg = wm * g
+    s1, sg, sy = wm.sum(-1), wg.sum(-1), _dot(wm, y)
+    sgg, sgy = _dot(wg, g), _dot(wg, y)
     det = s1 * sgg - sg * sg
-    amp = (s1 * sgy - sg * sy) / det
-    off = (sgg * sy - sg * sgy) / det
-    return amp, off
+    return (s1 * sgy - sg * sy) / det, (sgg * sy - sg * sgy) / det
 
 
 def _three_interval_tau(t, y, mask):
@@ -91,14 +87,17 @@ def _three_interval_tau(t, y, mask):
 
 
 class _Crds:
-    """g = exp(-(t - t_cut)/tau): B is the amplitude at t_cut."""
+    """g = exp(-(t - t_cut)/tau): B is the amplitude at t_cut; g = 0 outside the fit range."""
 
-    def __init__(self, t, t_cut):
-        self.dtau = t[None, :] - t_cut[:, None]
+    def __init__(self, t, t_cut, mask):
+        # zero time outside the fit range (then masked): no overflow, and no 0 * inf
+        self.dtau = np.where(mask, t[None, :] - t_cut[:, None], 0.0)
+        self.mask = mask
 
     def __call__(self, tau, rows, derivative=True):
         x = self.dtau[rows] / tau[:, None]
-        g = np.exp(-np.clip(x, -700, 700))
+        g = np.exp(-x)
+        g *= self.mask[rows]
         if not derivative:
             return g
         return g, g * x / tau[:, None]
@@ -107,7 +106,8 @@ class _Crds:
 class _TfCrds:
     """g = IFFT(FFT(x) H) on the window's grid, grouped by grid (one per t_cut for ``letter``)."""
 
-    def __init__(self, t, t_cut, tf, window):
+    def __init__(self, t, t_cut, tf, window, mask):
+        self.mask = mask
         dt = float(t[1] - t[0])
         uniq, self.group = np.unique(t_cut, return_inverse=True)
         self.grids = model_grids(float(t[0]), dt, t.size, uniq, tf, window)
@@ -119,46 +119,59 @@ class _TfCrds:
         grp = self.group[rows]
         for gi in np.unique(grp):
             sel = np.nonzero(grp == gi)[0]
-            out = filtered_response(tau[sel], self.grids[gi], self.h[gi], derivative=derivative)
+            out = filtered_response(tau[sel], self.grids[gi], self.h[gi], derivative=derivative, fill=0.0)
             if derivative:
                 g[sel], dg[sel] = out
             else:
                 g[sel] = out
+        m = self.mask[rows]
+        g *= m
         if not derivative:
             return g
+        dg *= m
         return g, dg
 
 
-def _gauss_newton(model, y, wm, tau0, max_iter=50, rtol=1e-10):
-    """Damped Gauss-Newton on tau with B, b projected out (Kaufman's variable projection)."""
+def _gauss_newton(model, y, wm, tau0, max_iter=50, rtol=1e-9):
+    """Damped Gauss-Newton on tau with B, b projected out (Kaufman's variable projection).
+
+    ``model`` returns g and dg/dtau, zero outside each row's fit range. With r = y - B g - b
+    orthogonal to span{g, 1} at the profiled B, b, the step needs only weighted dot products
+    of g, dg and y, so the residual is never formed.
+    """
     tau = tau0.copy()
     n = tau.size
     rows = np.arange(n)
     active = np.ones(n, bool)
     converged = np.zeros(n, bool)
+    s1_all = wm.sum(-1)
+    sy_all = _dot(wm, y)
     for _ in range(max_iter):
         idx = rows[active]
         if idx.size == 0:
             break
         g, dg = model(tau[idx], idx)
-        g = np.nan_to_num(g)
-        dg = np.nan_to_num(dg)
         w = wm[idx]
         yy = y[idx]
-        amp, off = _solve_linear(w, g, yy)
-        r = yy - amp[:, None] * g - off[:, None]
-        v = amp[:, None] * dg
-        # remove from v its weighted projection on span{g, 1}
-        pa, pb = _solve_linear(w, g, v)
-        vp = v - pa[:, None] * g - pb[:, None]
-        num = (w * vp * r).sum(-1)
-        den = (w * vp * vp).sum(-1)
-        step = np.where(den > 0, num / den, 0.0)
-        step = np.clip(step, -0.3 * tau[idx], 0.5 * tau[idx])
+        wg, wd = w * g, w * dg
+        s1, sy = s1_all[idx], sy_all[idx]
+        sg, sgg, sgy = wg.sum(-1), _dot(wg, g), _dot(wg, yy)
+        sd, sdg, sdy, sdd = wd.sum(-1), _dot(wd, g), _dot(wd, yy), _dot(wd, dg)
+        det = s1 * sgg - sg * sg
+        amp = (s1 * sgy - sg * sy) / det
+        off = (sgg * sy - sg * sgy) / det
+        # v = amp dg; num = v.W r; den = v.W v minus its projection on span{g, 1}
+        num = amp * (sdy - amp * sdg - off * sd)
+        pa = (s1 * sdg - sg * sd) / det
+        pb = (sgg * sd - sg * sdg) / det
+        den = amp * amp * (sdd - pa * sdg - pb * sd)
+        ok = np.isfinite(num) & np.isfinite(den) & (den > 0)
+        step = np.clip(np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx])
         tau[idx] = tau[idx] + step
-        done = np.abs(step) <= rtol * tau[idx]
+        done = ok & (np.abs(step) <= rtol * tau[idx])
         converged[idx[done]] = True
-        active[idx[done]] = False
+        # a row whose step cannot be formed stops, unconverged (reported, never silently passed)
+        active[idx[done | ~ok]] = False
     return tau, converged
 
 
@@ -200,7 +213,7 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
     noise = _noise_rows(noise_v, n, t.size, rows_of)
     wm = mask / noise**2 if noise is not None else mask.astype(float)
 
-    crds = _Crds(t, t_cut)
+    crds = _Crds(t, t_cut, mask)
     tau0 = _three_interval_tau(t, y, mask) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
     tau, conv = _gauss_newton(crds, y, wm, tau0)
     model = crds
@@ -208,14 +221,12 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
         if tf is None or window not in WINDOWS:
             raise ValueError("tf-crds needs a transfer function and a window "
                              f"({WINDOWS}), got tf={tf!r}, window={window!r}")
-        model = _TfCrds(t, t_cut, tf, window)
+        model = _TfCrds(t, t_cut, tf, window, mask)
         tau, conv = _gauss_newton(model, y, wm, tau)
     else:
         window = None
 
     g, dg = model(tau, np.arange(n))
-    g = np.nan_to_num(g)
-    dg = np.nan_to_num(dg)
     amp, off = _solve_linear(wm, g, y)
     resid = np.where(mask, y - amp[:, None] * g - off[:, None], 0.0)
     n_used = mask.sum(-1)
@@ -231,8 +242,9 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
     cols = (g, np.ones_like(g), amp[:, None] * dg)
     fisher = np.empty((n, 3, 3))
     for i in range(3):
+        wc = wm * cols[i]
         for j in range(i, 3):
-            fisher[:, i, j] = fisher[:, j, i] = (wm * cols[i] * cols[j]).sum(-1)
+            fisher[:, i, j] = fisher[:, j, i] = _dot(wc, cols[j])
     cov = covariance_from_fisher(fisher)
     return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
                          chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=noise is None,
