@@ -66,7 +66,9 @@ class LineFit:
     """A line-shape fit: parameter ``names``/``values``/``cov`` (SI), chi2 and residuals.
 
     ``line_area`` is A in Hz/m; :meth:`line_area_cm2` gives it in cm^-2. When the data carried
-    no trustworthy uncertainties (``scaled``), the covariance is scaled by chi2/dof.
+    no trustworthy uncertainties (``scaled``), the covariance is scaled by chi2/dof. Parameters
+    that ended on their lower bound (``at_bound``) have zero variance: they were not free at
+    the solution.
     """
 
     profile: str
@@ -81,6 +83,7 @@ class LineFit:
     spectra: tuple = field(repr=False)
     residuals: tuple = field(repr=False)
     scaled: bool = False
+    at_bound: tuple = ()
 
     def value(self, name):
         return float(self.values[self.names.index(name)])
@@ -247,14 +250,22 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
         jac[:, j] = (np.concatenate(model.predict(tp, spectra)) - np.concatenate(model.predict(tm, spectra))) / (2 * h) / u
     r = resid(sol.x)
     chi2 = float(r @ r)
-    dof = y.size - theta.size
-    cov = covariance_from_fisher(jac.T @ jac)
+    # parameters pinned at their lower bound (e.g. Gamma2 = 0 when the data cannot resolve
+    # speed dependence) are held fixed in the covariance: treating them as free would state
+    # the uncertainty of an estimator the fit did not use (the active set of the solution)
+    at_bound = tuple(n for n, v, l in zip(names, theta, lo) if l == 0.0 and v <= 1e-9 * max(scale[names.index(n)], 1e-300))
+    free_idx = [i for i, n in enumerate(names) if n not in at_bound]
+    dof = y.size - len(free_idx)
+    cov = np.zeros((theta.size, theta.size))
+    sub = jac[:, free_idx]
+    cov[np.ix_(free_idx, free_idx)] = covariance_from_fisher(sub.T @ sub)
     if scale_by_chi2:
         cov = cov * chi2 / max(dof, 1)
     split = np.cumsum([s.y.size for s in spectra])[:-1]
     return LineFit(profile=profile_name, names=names, values=theta, cov=cov, chi2=chi2, dof=dof,
                    nu_ref_hz=float(nu_ref_hz), doppler_hwhm_hz=float(doppler_hwhm_hz), fixed=fixed,
-                   spectra=spectra, residuals=tuple(np.split(r * u, split)), scaled=scale_by_chi2)
+                   spectra=spectra, residuals=tuple(np.split(r * u, split)), scaled=scale_by_chi2,
+                   at_bound=at_bound)
 
 
 def ratio_with_uncertainty(a, u_a, b, u_b, corr: float = 0.0):
