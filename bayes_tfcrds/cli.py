@@ -161,6 +161,45 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_budget(args) -> int:
+    from .uncertainty import BudgetOptions, run_budget, write_outputs
+    from .linefit import LineFitError
+    from .analysis import AnalysisError
+    bundle = _load(args.file)
+    config = _config(bundle, args.config)
+    opts = BudgetOptions(method=args.method, window=args.window, t_cut_s=args.tcut[0], profile=args.profile)
+    if args.steps is not None:
+        from dataclasses import replace
+        opts = replace(opts, n_steps=args.steps, max_steps=max(args.steps * 8, opts.max_steps))
+    try:
+        res = run_budget(bundle, config, opts, np.random.default_rng(args.seed), outdir=args.output,
+                         progress=not args.quiet)
+    except (LineFitError, AnalysisError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 1
+    write_outputs(res, args.output, seed=args.seed)
+    s = res.summary
+    print(res.budget_a.to_markdown())
+    if s["status"] != "ok":
+        print(f"FAILED: {s['status']} (diagnostics: {s['diagnostics']['runs']})", file=sys.stderr)
+        return 3
+    print(f"\nA = {s['line_area']['value']:.6e} +/- {s['line_area']['u']:.2e} cm^-2;  "
+          f"A/A_ref = {s['ratio']['value']:.5f} +/- {s['ratio']['u']:.5f};  E_n = {s['en']:.2f};  "
+          f"S = {s['intensity']['value']:.5e} +/- {s['intensity']['u']:.2e} cm/molecule", file=sys.stderr)
+    return 0
+
+
+def cmd_study(args) -> int:
+    from .study import StudyError, run_study
+    try:
+        html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet)
+    except StudyError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"wrote {html_path} and {pdf_path}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bayes-tfcrds", description=__doc__.splitlines()[0])
     p.add_argument("--version", action="version", version=f"bayes-tfcrds {__version__}")
@@ -203,6 +242,24 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
     sp.add_argument("-o", "--output", required=True)
     sp.set_defaults(func=cmd_linefit)
+    sp = common(sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS"))
+    sp.add_argument("file")
+    sp.add_argument("--config")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
+    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
+    sp.add_argument("--tcut", type=_floats, default=[4e-6], help="t_cut of the reported A, s")
+    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
+    sp.add_argument("--steps", type=int, help="MCMC steps per ensemble before the gates are checked")
+    sp.add_argument("--quiet", action="store_true", help="no progress bars")
+    sp.add_argument("-o", "--output", required=True, help="output folder")
+    sp.set_defaults(func=cmd_budget)
+
+    sp = common(sub.add_parser("study", help="run a declared study and write its report"))
+    sp.add_argument("file", help="study file (TOML), e.g. studies/letter_tcut.toml")
+    sp.add_argument("-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/")
+    sp.add_argument("--quiet", action="store_true")
+    sp.set_defaults(func=cmd_study)
+
     sp = common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"))
     sp.add_argument("-o", "--output", default="demo-out", help="output folder (default demo-out)")
     sp.add_argument("--quick", action="store_true", help="a smaller campaign (for a first look)")

@@ -40,6 +40,25 @@ class RefinedTF:
     tau_s: np.ndarray
     t_cut_s: np.ndarray
     rows_of: np.ndarray
+    sens_names: tuple = ()
+    a_full: np.ndarray | None = None
+    b_full: np.ndarray | None = None
+
+    def conditional(self, others: dict):
+        """Linear map of the refined parameters on the others held fixed in the refinement.
+
+        For the ``sens_names`` not refined, a change delta_O moves the refined optimum by
+        ``-A_RR^-1 A_RO delta_O`` (Gauss-Newton on the estimating equations), and the refined
+        estimate scatters with the sandwich covariance ``cov`` around it. Returns
+        (gain matrix (n_free, n_others), names of the others) for the names in ``others``.
+        """
+        if self.a_full is None:
+            raise ValueError("refinement was run without sensitivity names")
+        idx_r = [self.sens_names.index(n) for n in self.free]
+        idx_o = [self.sens_names.index(n) for n in others]
+        a_rr = self.a_full[np.ix_(idx_r, idx_r)]
+        a_ro = self.a_full[np.ix_(idx_r, idx_o)]
+        return -np.linalg.solve(a_rr, a_ro), tuple(others)
 
     @property
     def stderr(self) -> dict:
@@ -79,7 +98,7 @@ def _evaluate(t, y, wm, t_cut, tf, free, window, tau_start):
 
 def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("f_c_hz",),
                              window: str = "extinction", noise_v=None, rows_of=None,
-                             max_iter: int = 30, rtol: float = 1e-8) -> RefinedTF:
+                             max_iter: int = 30, rtol: float = 1e-8, sens_names=()) -> RefinedTF:
     """Refine the ``free`` H parameters jointly over many truncated transients.
 
     ``time_s`` (k,) s; ``signal_v`` (m, k) V; ``t_cut_s`` (n,) s and ``rows_of`` (n,) as in
@@ -144,16 +163,30 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
             converged = accepted or rel < 1e-6
             break
 
-    a = np.einsum("npk,nqk,nk->pq", jred, jred, wm)
-    a_inv = covariance_from_fisher(a)
-    # score of each record summed over its truncations, then its noise variance
     m = sig.shape[0]
-    u = np.zeros((m, len(free), k))
-    np.add.at(u, rows_of, jred * wm[:, None, :])
     var = _noise_rows(noise_v, m, k, np.arange(m)) ** 2
-    b = np.einsum("mpk,mqk,mk->pq", u, u, var)
+
+    def fisher_and_meat(j):
+        a_ = np.einsum("npk,nqk,nk->pq", j, j, wm)
+        # score of each record summed over its truncations, then its noise variance
+        u = np.zeros((m, j.shape[1], k))
+        np.add.at(u, rows_of, j * wm[:, None, :])
+        return a_, np.einsum("mpk,mqk,mk->pq", u, u, var)
+
+    a, b = fisher_and_meat(jred)
+    a_inv = covariance_from_fisher(a)
     cov = a_inv @ b @ a_inv
+    sens_names = tuple(sens_names) or free
+    a_full = b_full = None
+    if sens_names != free:
+        missing = [nm for nm in free if nm not in sens_names]
+        if missing:
+            raise ValueError(f"sens_names must include the refined parameters {missing}")
+        _, _, _, _, jfull = _evaluate(t, y, wm, t_cut, tf, sens_names, window, tau)
+        a_full, b_full = fisher_and_meat(jfull)
+    else:
+        a_full, b_full = a, b
     dof = int(mask.sum() - 3 * n - len(free))
     return RefinedTF(params=tf, start=start, free=free, cov=cov, cov_naive=a_inv, chi2=chi2, dof=dof,
                      n_iter=it, converged=bool(converged and conv.all()), tau_s=tau, t_cut_s=t_cut,
-                     rows_of=rows_of)
+                     rows_of=rows_of, sens_names=sens_names, a_full=a_full, b_full=b_full)

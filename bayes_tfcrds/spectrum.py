@@ -106,8 +106,10 @@ class LineFit:
 
     @property
     def correlation(self) -> np.ndarray:
+        """Correlation matrix; rows of parameters held at a bound (zero variance) are NaN."""
         d = np.sqrt(np.diag(self.cov))
-        return self.cov / np.outer(d, d)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(np.outer(d, d) > 0, self.cov / np.outer(d, d), np.nan)
 
     @property
     def chi2_red(self) -> float:

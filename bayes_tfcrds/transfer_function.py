@@ -62,18 +62,30 @@ def transfer_function(f_hz, params: TFParams, normalise: bool = True) -> np.ndar
     With ``normalise`` the result is divided by H(0) = 1 + A_r (unit DC gain).
     Negative frequencies return conj(H(|f|)) so that the impulse response is real.
     """
+    return transfer_function_array(f_hz, params.f_c_hz, params.a_r, params.f_r_hz, params.gamma_r, params.n_r,
+                                   params.variant, normalise)
+
+
+def transfer_function_array(f_hz, f_c_hz, a_r, f_r_hz, gamma_r, n_r, variant="causal", normalise=True):
+    """Eq. 2 with array-valued parameters that broadcast against ``f_hz`` (Hz).
+
+    The samplers evaluate many parameter sets at once (emcee's vectorised walkers): pass
+    parameters of shape (n, 1) and frequencies of shape (m,) to get (n, m).
+    """
     f = np.asarray(f_hz, dtype=float)
     af = np.abs(f)
-    lowpass = 1.0 / (1.0 + 1j * af / params.f_c_hz)
-    x = af / params.f_r_hz
-    if params.variant == "letter":
-        denom = 1.0 - x**params.n_r + 1j * x / params.gamma_r
-    else:
+    lowpass = 1.0 / (1.0 + 1j * af / f_c_hz)
+    x = af / f_r_hz
+    if variant == "letter":
+        denom = 1.0 - x**n_r + 1j * x / gamma_r
+    elif variant == "causal":
         # principal branch of (i x)^n for x >= 0: x^n exp(i n pi / 2)
-        denom = 1.0 + x**params.n_r * np.exp(0.5j * np.pi * params.n_r) + 1j * x / params.gamma_r
-    h = lowpass + params.a_r / denom
+        denom = 1.0 + x**n_r * np.exp(0.5j * np.pi * n_r) + 1j * x / gamma_r
+    else:
+        raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
+    h = lowpass + a_r / denom
     if normalise:
-        h = h / (1.0 + params.a_r)
+        h = h / (1.0 + a_r)
     return np.where(f < 0, np.conj(h), h)
 
 

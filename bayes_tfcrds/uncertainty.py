@@ -1,0 +1,338 @@
+"""The line-area uncertainty budget of one configuration, and its comparison with CMDS.
+
+Pipeline (each step a function of the bundle, the options and the seed):
+
+1. **H posterior.** emcee on the beat-note likelihood gives the H parameters; the letter's
+   refinement then updates the refined ones (default f_c): each posterior draw of the others is
+   followed by a draw of f_c from its conditional given the ring-downs (linearised on the
+   refinement's estimating equations, with its sandwich covariance, because the same record enters
+   once per t_cut).
+2. **Decay times** at every spectral point and t_cut with the refined H; a draw of H moves them
+   all at once through d tau/d theta (:mod:`bayes_tfcrds.propagate`).
+3. **Line posterior.** emcee on the line parameters given the spectrum at the chosen t_cut; each
+   posterior sample is shifted by the change of the line estimate that one H draw causes, so the
+   H uncertainty enters as a correlated shift of the whole spectrum, never as independent noise.
+   A_ref: emcee on the CMDS shifts.
+4. **Budget** (GUM, JCGM 100): ring-down noise, each H parameter (with their posterior
+   correlations), the t_cut choice and the line-shape model choice for u(A); pressure and
+   temperature for S = A/N; the CMDS reference for A/A_ref and E_n.
+
+The samplers' convergence gates are part of the result: a run that fails them is reported as
+failed, and its numbers are never given as a result.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from .analysis import BEAT_FREE, DEFAULT_T_CUTS, beat_note_fit, select_refinement_points
+from .budget import Budget, Component, normalized_error
+from .constants import C, intensity_to_cm_per_molecule, line_area_to_cm2, number_density
+from .linedata import load_line
+from .linefit import doppler_of
+from .posterior import BeatNotePosterior, LinePosterior
+from .propagate import _model_of, line_gain, tau_sensitivities
+from .refine import refine_transfer_function
+from .ringdown import fit_ringdowns
+from .sampling import Gates, run_ensembles
+from .spectrum import cmds_spectrum, crds_spectrum, fit_line
+
+
+@dataclass(frozen=True)
+class BudgetOptions:
+    """What the budget analysis does (SI: t_cut in s)."""
+
+    method: str = "tf-crds"
+    window: str = "extinction"
+    t_cut_s: float = 4e-6
+    t_cuts_s: tuple = DEFAULT_T_CUTS
+    profile: str = "qsdhcp"
+    alt_profile: str = "sdvp"
+    refine_free: tuple = ("f_c_hz",)
+    n_refine_points: int = 6
+    n_ensembles: int = 4
+    n_steps: int = 3000
+    max_steps: int = 24000
+    n_h_draws: int = 1000
+
+
+@dataclass(frozen=True)
+class BudgetResult:
+    """Everything the budget run produced: the JSON summary and the artefacts behind it."""
+
+    summary: dict
+    budget_a: Budget
+    budget_s: Budget
+    budget_ratio: Budget
+    samples: dict = field(repr=False)
+    runs: dict = field(repr=False)
+
+
+def _h_posterior(config, options: BudgetOptions, rng, backend, progress):
+    """Beat-note MCMC, then the refinement update of ``refine_free``; returns draws (n, 4)."""
+    beat = beat_note_fit(config, free=BEAT_FREE)
+    tfd = config.transfer_function
+    post = BeatNotePosterior(f_hz=np.asarray(tfd.f_hz), h_mag=np.asarray(tfd.h_mag),
+                             h_mag_u=np.asarray(tfd.h_mag_u), free=BEAT_FREE, fixed=beat.params)
+    x0 = post.to_sample(beat.params, beat.scale)
+    sd0 = np.sqrt(np.diag(beat.cov))
+    # initial spread: the least-squares covariance, in sample space (log params: relative sd)
+    nat = np.append(beat.params.as_vector(BEAT_FREE), beat.scale)
+    spread = np.where([n.startswith("log_") for n in post.sample_names], sd0 / np.abs(nat), sd0)
+
+    def p0(r, n):
+        return x0 + spread * r.standard_normal((n, x0.size))
+
+    run = run_ensembles(post, p0, post.sample_names, rng, n_ensembles=options.n_ensembles,
+                        n_steps=options.n_steps, max_steps=options.max_steps, vectorize=True,
+                        backend_path=backend, progress=progress, label="H | beat note")
+    flat = run.flat()
+    pick = rng.choice(flat.shape[0], size=min(options.n_h_draws, flat.shape[0]), replace=False)
+    nat_draws = post.to_params(flat[pick])
+    draws = np.column_stack([nat_draws[n] for n in BEAT_FREE])
+    refined = None
+    if options.method == "tf-crds" and options.refine_free:
+        rd = config.ringdowns
+        idx = select_refinement_points(rd, options.n_refine_points)
+        t_cuts = np.asarray(options.t_cuts_s, float)
+        rows = np.repeat(np.arange(idx.size), t_cuts.size)
+        noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
+        refined = refine_transfer_function(rd.time_s, rd.signal_v[idx], np.tile(t_cuts, idx.size), beat.params,
+                                           free=options.refine_free, window=options.window, noise_v=noise,
+                                           rows_of=rows, sens_names=BEAT_FREE)
+        others = tuple(n for n in BEAT_FREE if n not in options.refine_free)
+        gain, _ = refined.conditional({n: None for n in others})
+        io = [BEAT_FREE.index(n) for n in others]
+        ir = [BEAT_FREE.index(n) for n in options.refine_free]
+        centre = refined.params.as_vector(BEAT_FREE)
+        delta_o = draws[:, io] - centre[io]
+        noise_r = rng.multivariate_normal(np.zeros(len(ir)), refined.cov, size=draws.shape[0])
+        draws[:, ir] = centre[ir] + delta_o @ gain.T + noise_r
+        h_star = refined.params
+    else:
+        h_star = beat.params
+    return beat, refined, h_star, draws, run
+
+
+def _line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress, label):
+    model = _model_of(lsq)
+    post = LinePosterior(model=model, spectra=tuple(spectra), names=lsq.names)
+    sd = np.sqrt(np.diag(lsq.cov))
+    sd = np.where(sd > 0, sd, np.abs(lsq.values) * 1e-3 + 1e-3 * lsq.doppler_hwhm_hz * (np.array(lsq.names) != "line_area"))
+    x0 = lsq.values.copy()
+    for i, n in enumerate(lsq.names):           # start strictly inside the prior
+        if n in ("gamma2_hz", "nu_vc_hz") and x0[i] <= sd[i]:
+            x0[i] = sd[i]
+
+    def p0(r, n):
+        x = x0 + 0.5 * sd * r.standard_normal((n, x0.size))
+        for i, name in enumerate(lsq.names):
+            if name in ("gamma2_hz", "nu_vc_hz", "line_area", "gamma0_hz"):
+                x[:, i] = np.abs(x[:, i])
+        return x
+
+    return run_ensembles(post, p0, lsq.names, rng, n_ensembles=options.n_ensembles, n_steps=options.n_steps,
+                         max_steps=options.max_steps, vectorize=True, backend_path=backend, progress=progress,
+                         label=label)
+
+
+def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np.random.Generator | None = None,
+               outdir: str | Path | None = None, progress: bool = False) -> BudgetResult:
+    """Posteriors, propagation and the GUM budget for one configuration (see module doc)."""
+    rng = np.random.default_rng(0) if rng is None else rng
+    streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
+    backend = None
+    if outdir is not None:
+        Path(outdir).mkdir(parents=True, exist_ok=True)
+        backend = str(Path(outdir) / "chains.h5")
+    sample = bundle.sample
+    gd = doppler_of(sample)
+    nu_ref = sample.nu0_hz
+    rd = config.ringdowns
+
+    # 1. H
+    runs = {}
+    beat = refined = None
+    h_star = None
+    h_draws = None
+    if options.method == "tf-crds":
+        beat, refined, h_star, h_draws, runs["h"] = _h_posterior(
+            config, options, streams["h"], None if backend is None else backend.replace(".h5", "_h.h5"), progress)
+
+    # 2. decay times at all t_cuts (LSQ line fit per t_cut for the t_cut row)
+    t_cuts = np.asarray(sorted(set(options.t_cuts_s) | {options.t_cut_s}), float)
+    fits = fit_ringdowns(rd, t_cuts, method=options.method, tf=h_star, window=options.window)
+    j0 = int(np.nonzero(np.isclose(t_cuts, options.t_cut_s))[0][0])
+    area_by_tcut = {}
+    for j, tc in enumerate(t_cuts):
+        sp = crds_spectrum(fits.nu_hz, fits.tau_s[:, j], fits.tau_u_s[:, j])
+        area_by_tcut[float(tc)] = fit_line([sp], options.profile, gd, nu_ref).line_area
+    spec = crds_spectrum(fits.nu_hz, fits.tau_s[:, j0], fits.tau_u_s[:, j0])
+    lsq = fit_line([spec], options.profile, gd, nu_ref)
+    alt = fit_line([spec], options.alt_profile, gd, nu_ref)
+
+    # 3. line posterior given H*, then the H shifts
+    runs["line"] = _line_mcmc([spec], options.profile, gd, nu_ref, lsq, streams["line"], options,
+                              None if backend is None else backend.replace(".h5", "_line.h5"), progress,
+                              "line | CRDS")
+    line_flat = runs["line"].flat()
+    ia = lsq.names.index("line_area")
+    a_noise = line_flat[:, ia]
+    dA = np.zeros(1)
+    sens_a = {}
+    if options.method == "tf-crds":
+        ok = np.isfinite(fits.tau_s[:, j0]) & np.isfinite(fits.tau_u_s[:, j0]) & (fits.tau_u_s[:, j0] > 0)
+        good = np.nonzero(ok)[0]
+        s_tau = tau_sensitivities(rd.time_s, rd.signal_v, np.full(good.size, options.t_cut_s),
+                                  fits.tau_s[good, j0], fits.amplitude_v[good, j0], h_star, BEAT_FREE,
+                                  options.window, noise_v=rd.noise_v, rows_of=good)
+        k_gain = line_gain(lsq)[ia]                                   # dA/d(1/(c tau))
+        dalpha_dtau = -1.0 / (C * fits.tau_s[good, j0] ** 2)
+        grad_a = (k_gain * dalpha_dtau) @ s_tau                       # dA/dtheta_H (Hz/m per unit)
+        sens_a = dict(zip(BEAT_FREE, grad_a))
+        delta = h_draws - h_star.as_vector(BEAT_FREE)
+        dA = delta @ grad_a
+    pair = streams["pair"].integers(0, dA.size, size=a_noise.size)
+    a_total = a_noise + dA[pair]
+
+    # CMDS reference
+    ref_lsq = ref_run = None
+    if config.cmds is not None:
+        cm = cmds_spectrum(config.cmds)
+        ref_lsq = fit_line([cm], options.profile, gd, nu_ref)
+        ref_run = _line_mcmc([cm], options.profile, gd, nu_ref, ref_lsq, streams["cmds"], options,
+                             None if backend is None else backend.replace(".h5", "_cmds.h5"), progress, "A_ref | CMDS")
+        runs["cmds"] = ref_run
+    a_ref = ref_run.flat()[:, ref_lsq.names.index("line_area")] if ref_run is not None else None
+
+    # 4. budgets
+    a_hat = float(np.mean(a_total))
+    comps = [Component("ring-down noise (line fit given H)", None, float(np.std(a_noise)), 1.0, "Hz/m",
+                       note="Type A: sd of the line posterior given the refined H")]
+    corr = {}
+    if options.method == "tf-crds":
+        hsd = h_draws.std(axis=0)
+        hc = np.corrcoef(h_draws.T)
+        units = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
+        for i, n in enumerate(BEAT_FREE):
+            comps.append(Component(f"H: {n}", float(h_star.as_vector(BEAT_FREE)[i]), float(hsd[i]), float(sens_a[n]),
+                                   units[n], note="Type A: H posterior (beat note + ring-down refinement)"))
+        for i, ni in enumerate(BEAT_FREE):
+            for j, nj in enumerate(BEAT_FREE):
+                if j > i:
+                    corr[(f"H: {ni}", f"H: {nj}")] = float(hc[i, j])
+    spread = max(area_by_tcut.values()) - min(area_by_tcut.values())
+    comps.append(Component("t_cut choice", None, float(spread / np.sqrt(12)), 1.0, "Hz/m",
+                           note=f"Type B: rectangular over the A(t_cut) range, t_cut = "
+                                f"{', '.join(f'{t * 1e6:g}' for t in t_cuts)} us"))
+    comps.append(Component(f"line-shape model ({options.profile} vs {options.alt_profile})", None,
+                           float(abs(lsq.line_area - alt.line_area) / np.sqrt(12)), 1.0, "Hz/m",
+                           note="Type B: rectangular over the difference of the two profiles' A"))
+    budget_a = Budget(quantity="line area A", value=a_hat, unit="Hz/m", components=tuple(comps), correlations=corr)
+    u_a = budget_a.combined_u
+
+    n_dens = float(number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction))
+    s_val = float(intensity_to_cm_per_molecule(a_hat, n_dens))
+    budget_s = Budget(quantity="line intensity S = A/N", value=s_val, unit="cm/molecule", components=(
+        Component("line area A", a_hat, u_a, s_val / a_hat, "Hz/m", note="combined u(A) from the A budget"),
+        Component("pressure p", sample.pressure_pa, sample.pressure_u_pa, -s_val / sample.pressure_pa, "Pa",
+                  note="bundle /sample@pressure_u_pa"),
+        Component("temperature T", sample.temperature_k, sample.temperature_u_k, s_val / sample.temperature_k, "K",
+                  note="bundle /sample@temperature_u_k"),
+    ))
+    line = load_line()
+    s_ref, u_s_ref = line.intensity_cm_per_molecule, line.intensity_u_cm_per_molecule
+
+    summary = {
+        "configuration": config.name, "method": options.method,
+        "window": options.window if options.method == "tf-crds" else None,
+        "t_cut_s": options.t_cut_s, "profile": options.profile,
+        "line_area": {"value": float(line_area_to_cm2(a_hat)), "u": float(line_area_to_cm2(u_a)), "unit": "cm^-2",
+                      "value_si": a_hat, "u_si": u_a, "unit_si": "Hz/m",
+                      "u_posterior_noise_and_h": float(line_area_to_cm2(np.std(a_total)))},
+        "intensity": {"value": s_val, "u": budget_s.combined_u, "unit": "cm/molecule",
+                      "reference": s_ref, "reference_u": u_s_ref,
+                      "en": normalized_error(s_val, 2 * budget_s.combined_u, s_ref, 2 * u_s_ref)},
+        "components": [{"name": c.name, "u": float(line_area_to_cm2(c.contribution)), "unit": "cm^-2",
+                        "share": float(budget_a.shares()[c.name])} for c in comps],
+        "a_by_t_cut": {f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in area_by_tcut.items()},
+        "sensitivities_hz_per_m": {k: float(v) for k, v in sens_a.items()},
+    }
+    if h_star is not None:
+        summary["transfer_function"] = {"f_c_hz": h_star.f_c_hz, "a_r": h_star.a_r, "f_r_hz": h_star.f_r_hz,
+                                        "gamma_r": h_star.gamma_r, "n_r": h_star.n_r, "variant": h_star.variant,
+                                        "refined": list(options.refine_free)}
+    budget_ratio = None
+    if a_ref is not None:
+        a_ref_hat = float(np.mean(a_ref))
+        u_ref = float(np.std(a_ref))
+        r = a_hat / a_ref_hat
+        budget_ratio = Budget(quantity="A/A_ref", value=r, unit="1", components=(
+            Component("line area A (CRDS)", a_hat, u_a, 1.0 / a_ref_hat, "Hz/m"),
+            Component("reference area A_ref (CMDS)", a_ref_hat, u_ref, -r / a_ref_hat, "Hz/m",
+                      note="Type A: CMDS posterior"),
+        ))
+        summary["reference_area"] = {"value": float(line_area_to_cm2(a_ref_hat)), "u": float(line_area_to_cm2(u_ref)),
+                                     "unit": "cm^-2", "value_si": a_ref_hat, "u_si": u_ref, "unit_si": "Hz/m"}
+        summary["ratio"] = {"value": r, "u": budget_ratio.combined_u}
+        summary["en"] = normalized_error(a_hat, 2 * u_a, a_ref_hat, 2 * u_ref)
+    else:
+        summary["reference_area"] = summary["ratio"] = summary["en"] = None
+    rhat = max(run.rhat_max for run in runs.values())
+    ess = min(run.ess_min for run in runs.values())
+    passed = all(run.passed for run in runs.values())
+    summary["diagnostics"] = {"rhat_max": float(rhat), "ess_min": float(ess), "passed": bool(passed),
+                              "runs": {k: {"rhat_max": float(v.rhat_max), "ess_min": float(v.ess_min),
+                                           "passed": bool(v.passed), "status": v.status, "n_steps": int(v.n_steps)}
+                                       for k, v in runs.items()}}
+    if not passed:
+        # a failed run is never shown as a result: the numbers move out of the result keys
+        failed = {k: summary.pop(k) for k in ("line_area", "reference_area", "ratio", "en", "intensity")}
+        summary.update({k: None for k in failed})
+        summary["unconverged_estimates"] = failed
+        summary["status"] = "failed: convergence gates not met"
+    else:
+        summary["status"] = "ok"
+    samples = {"a_total": a_total, "a_noise": a_noise, "a_ref": a_ref, "h_draws": h_draws}
+    return BudgetResult(summary=summary, budget_a=budget_a, budget_s=budget_s, budget_ratio=budget_ratio,
+                        samples=samples, runs=runs)
+
+
+def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list:
+    """budget.json, budget tables (Markdown, CSV), posteriors (arviz netCDF) and corner plots.
+
+    Every file goes through a temporary name and a rename, so none is ever half-written.
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import corner
+    import matplotlib.pyplot as plt
+    from .cli import atomic_write_text
+
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    summary = dict(result.summary)
+    if seed is not None:
+        summary["seed"] = seed
+    atomic_write_text(out / "budget.json", json.dumps(summary, indent=2, default=float) + "\n")
+    written.append(out / "budget.json")
+    tables = [result.budget_a, result.budget_s] + ([result.budget_ratio] if result.budget_ratio is not None else [])
+    md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
+    atomic_write_text(out / "budget.md", md + "\n")
+    atomic_write_text(out / "budget.csv", result.budget_a.to_csv())
+    written += [out / "budget.md", out / "budget.csv"]
+    for key, run in result.runs.items():
+        path = out / f"posterior_{key}.nc"
+        run.save_netcdf(path)
+        written.append(path)
+        fig = corner.corner(run.flat(), labels=list(run.names), show_titles=True, title_fmt=".3g")
+        tmp = out / f".corner_{key}.png.tmp.png"
+        fig.savefig(tmp, dpi=70)
+        plt.close(fig)
+        tmp.replace(out / f"corner_{key}.png")
+        written.append(out / f"corner_{key}.png")
+    return written
