@@ -57,6 +57,34 @@ def tau_sensitivities(time_s, signal_v, t_cut_s, tau_s, amplitude_v, tf: TFParam
     return out
 
 
+def tau_influence(time_s, signal_v, t_cut_s, tau_s, amplitude_v, tf: TFParams | None, window="extinction",
+                  noise_v=None) -> np.ndarray:
+    """d tau_hat / d y_k for each record's samples (s/V), shape (n, k): the delta-method influence.
+
+    For TF-CRDS pass ``tf``; with ``tf`` None the plain exponential (CRDS) model is used.
+    """
+    t = np.asarray(time_s, float)
+    tau = np.atleast_1d(np.asarray(tau_s, float))
+    amp = np.atleast_1d(np.asarray(amplitude_v, float))
+    n, k = tau.size, t.size
+    dt = t[1] - t[0]
+    first = first_index_at(t[0], dt, t_cut_s)
+    mask = np.zeros((n, k))
+    mask[:, first:] = 1.0
+    if tf is None:
+        x = np.clip(t - t_cut_s, 0, None)[None, :] / tau[:, None]
+        g = np.exp(-x) * mask
+        dg = g * x / tau[:, None]
+    else:
+        grid = model_grids(float(t[0]), dt, k, [t_cut_s], tf, window)[0]
+        g, dg = filtered_response(tau, grid, grid_transfer_function(grid, tf), derivative=True, fill=0.0)
+        g, dg = g * mask, dg * mask
+    w = mask if noise_v is None else mask / np.broadcast_to(np.asarray(noise_v, float).reshape(n, -1), (n, k)) ** 2
+    cols = np.stack([g, mask, amp[:, None] * dg], axis=1)
+    ctc = np.einsum("nak,nbk,nk->nab", cols, cols, w)
+    return np.einsum("nb,nbk,nk->nk", np.linalg.inv(ctc)[:, 2, :], cols, w)
+
+
 def line_gain(line_fit) -> np.ndarray:
     """K = d theta_line / d y for a :class:`bayes_tfcrds.spectrum.LineFit`, shape (n_par, n_y).
 

@@ -43,6 +43,7 @@ class RefinedTF:
     sens_names: tuple = ()
     a_full: np.ndarray | None = None
     b_full: np.ndarray | None = None
+    influence: np.ndarray | None = None     # d theta_free / d y: (records, n_free, samples)
 
     def conditional(self, others: dict):
         """Linear map of the refined parameters on the others held fixed in the refinement.
@@ -176,6 +177,11 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
     a, b = fisher_and_meat(jred)
     a_inv = covariance_from_fisher(a)
     cov = a_inv @ b @ a_inv
+    # influence of each record's samples on the refined parameters (delta method): lets callers
+    # correlate the refinement's noise with other uses of the same records
+    score = np.zeros((m, len(free), k))
+    np.add.at(score, rows_of, jred * wm[:, None, :])
+    influence = np.einsum("pq,mqk->mpk", a_inv, score)
     sens_names = tuple(sens_names) or free
     a_full = b_full = None
     if sens_names != free:
@@ -189,4 +195,5 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
     dof = int(mask.sum() - 3 * n - len(free))
     return RefinedTF(params=tf, start=start, free=free, cov=cov, cov_naive=a_inv, chi2=chi2, dof=dof,
                      n_iter=it, converged=bool(converged and conv.all()), tau_s=tau, t_cut_s=t_cut,
-                     rows_of=rows_of, sens_names=sens_names, a_full=a_full, b_full=b_full)
+                     rows_of=rows_of, sens_names=sens_names, a_full=a_full, b_full=b_full,
+                     influence=influence)

@@ -342,14 +342,17 @@ def _cmds_noise(nu_hz, lt, c: Campaign):
 
 
 def simulate_campaign(presets, rng: np.random.Generator, campaign: Campaign = Campaign(),
-                      effects: dict | None = None, line_effects_default: bool = True):
+                      effects: dict | None = None, line_effects_default: bool = True, streams: dict | None = None):
     """Simulate one campaign: one configuration per preset name (``letter-D1`` ... ``letter-D4``).
 
     ``effects`` maps canonical effect names to parameter dicts (defaults filled in). With
     ``line_effects_default`` the letter's line (speed dependence and hard collisions on) and
     the presets' chains are used unless ``effects`` says otherwise; pass an explicit dict with
     ``line_effects_default=False`` to start from an ideal chain and a Voigt line.
-    Returns ``(Bundle, truth_dict)``.
+    Each measurement draws its noise from its own stream, spawned from ``rng``: ``ringdown``,
+    ``beat`` and ``cmds`` (one child per configuration each). ``streams`` may override any of
+    them with a Generator, e.g. to repeat the beat-note measurement exactly while the ring-down
+    noise changes (noise-only studies). Returns ``(Bundle, truth_dict)``.
     """
     effects = dict(effects or {})
     if line_effects_default:
@@ -368,21 +371,25 @@ def simulate_campaign(presets, rng: np.random.Generator, campaign: Campaign = Ca
 
     configs = {}
     truth_cfg = {}
-    for name in presets:
+    base = dict(zip(("ringdown", "beat", "cmds"), rng.spawn(3)))
+    base.update(streams or {})
+    per_config = {k: g.spawn(len(presets)) for k, g in base.items()}
+    for ci, name in enumerate(presets):
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
         pre = PRESETS[name]
         chain = chain_from_tf(pre.tf) if "transfer_function" in effects else IDEAL_CHAIN
         clean = detected_transients(t, tau, chain, effects, campaign.amplitude_v)
-        signal = acquire(clean, campaign, pre.noise_v, effects, t, rng)
+        signal = acquire(clean, campaign, pre.noise_v, effects, t, per_config["ringdown"][ci])
         noise = np.full(nu_modes.size, np.hypot(pre.noise_v, (campaign.adc_range_v[1] - campaign.adc_range_v[0])
                                                  / 2**campaign.adc_bits / np.sqrt(12)) / np.sqrt(campaign.n_avg))
         rd = RingdownData(nu_hz=nu_modes, signal_v=signal, dt_s=campaign.dt_s, t0_s=campaign.t0_s,
                           n_avg=np.full(nu_modes.size, campaign.n_avg), noise_v=noise)
-        tfd = _tf_measurement(chain, campaign, effects, rng)
-        cm = CmdsData(nu_hz=nu_modes, shift_hz=shift_true + shift_u * rng.standard_normal(nu_modes.size),
+        tfd = _tf_measurement(chain, campaign, effects, per_config["beat"][ci])
+        rc = per_config["cmds"][ci]
+        cm = CmdsData(nu_hz=nu_modes, shift_hz=shift_true + shift_u * rc.standard_normal(nu_modes.size),
                       shift_u_hz=np.full(nu_modes.size, shift_u),
-                      width_hz=width_true + campaign.cmds_width_u_hz * rng.standard_normal(nu_modes.size),
+                      width_hz=width_true + campaign.cmds_width_u_hz * rc.standard_normal(nu_modes.size),
                       width_u_hz=np.full(nu_modes.size, campaign.cmds_width_u_hz))
         configs[pre.label] = Config(name=pre.label, ringdowns=rd, transfer_function=tfd, cmds=cm,
                                     description=pre.description)

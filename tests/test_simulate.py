@@ -39,7 +39,10 @@ def test_presets_reproduce_the_letter_crds_biases(letter_d2_d4, label):
     bias = 100 * (fits.tau_s[:, 0] / tau - 1)
     got = {"tau_base": bias[np.argmax(tau)], "tau_centre": bias[np.argmin(tau)]}
     res = analyse_line(bundle, cfg, method="crds", t_cut_s=8e-6)
-    got["A8"] = 100 * (res["ratio"]["value"] - 1)
+    # the bias the preset must reproduce is A/A_true - 1; A/A_ref estimates it with the CMDS
+    # reference's own noise on top (0.06 % in the letter, more at this reduced size)
+    got["A8"] = 100 * (res["line_area"]["value_si"] / truth["line"]["line_area_hz_per_m"] - 1)
+    assert abs(res["ratio"]["value"] - 1 - got["A8"] / 100) < 4 * res["ratio"]["u"]
     for key, letter in LETTER[label].items():
         # the acceptance band: within +/-30 % of the letter's value
         assert 0.7 * abs(letter) <= abs(got[key]) <= 1.3 * abs(letter) and np.sign(got[key]) == np.sign(letter), \
