@@ -191,8 +191,13 @@ def cmd_budget(args) -> int:
 
 def cmd_study(args) -> int:
     from .study import StudyError, run_study
+    from concurrent.futures import ProcessPoolExecutor
     try:
-        html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet)
+        if args.workers > 1:
+            with ProcessPoolExecutor(max_workers=args.workers) as pool:
+                html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet, pool=pool)
+        else:
+            html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -258,6 +263,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("file", help="study file (TOML), e.g. studies/letter_tcut.toml")
     sp.add_argument("-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/")
     sp.add_argument("--quiet", action="store_true")
+    sp.add_argument("--workers", type=int, default=2, help="local worker processes (default 2: both cores)")
     sp.set_defaults(func=cmd_study)
 
     sp = common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"))

@@ -84,6 +84,7 @@ class BudgetResult:
     budget_ratio: Budget
     samples: dict = field(repr=False)
     runs: dict = field(repr=False)
+    tau_table: list = field(default_factory=list, repr=False)
 
 
 def _h_posterior(config, options: BudgetOptions, rng, backend, progress):
@@ -416,8 +417,25 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
     else:
         summary["status"] = "ok"
     samples = {"a_total": a_total, "a_noise": a_noise, "a_ref": a_ref, "h_draws": h_draws}
+    # decay-time posteriors at every point and t_cut: noise (the fit's u) and H (one draw moves
+    # every tau through S; its covariance is S Sigma_H S^T), first order
+    tau_table = []
+    cov_h = np.cov(h_draws.T) if options.method == "tf-crds" else None
+    for j, tc in enumerate(t_cuts):
+        ok_j = np.isfinite(fits.tau_s[:, j]) & np.isfinite(fits.tau_u_s[:, j])
+        rows_j = np.nonzero(ok_j)[0]
+        u_h = np.zeros(rows_j.size)
+        if cov_h is not None and rows_j.size:
+            s_j = tau_sensitivities(rd.time_s, rd.signal_v, np.full(rows_j.size, tc), fits.tau_s[rows_j, j],
+                                    fits.amplitude_v[rows_j, j], h_star, BEAT_FREE, options.window,
+                                    noise_v=rd.noise_v, rows_of=rows_j)
+            u_h = np.sqrt(np.maximum(np.einsum("ip,pq,iq->i", s_j, cov_h, s_j), 0.0))
+        for i, uh in zip(rows_j, u_h):
+            un = fits.tau_u_s[i, j]
+            tau_table.append((float(fits.nu_hz[i]), float(tc), float(fits.tau_s[i, j]), float(un), float(uh),
+                              float(np.hypot(un, uh))))
     return BudgetResult(summary=summary, budget_a=budget_a, budget_s=budget_s, budget_ratio=budget_ratio,
-                        samples=samples, runs=runs)
+                        samples=samples, runs=runs, tau_table=tau_table)
 
 
 def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list:
@@ -443,7 +461,10 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
     md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
     atomic_write_text(out / "budget.md", md + "\n")
     atomic_write_text(out / "budget.csv", result.budget_a.to_csv())
-    written += [out / "budget.md", out / "budget.csv"]
+    lines = ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"] + [
+        f"{nu:.9f},{tc:.6e},{tau:.10e},{un:.4e},{uh:.4e},{u:.4e}" for nu, tc, tau, un, uh, u in result.tau_table]
+    atomic_write_text(out / "tau_posterior.csv", "\n".join(lines) + "\n")
+    written += [out / "budget.md", out / "budget.csv", out / "tau_posterior.csv"]
     for key, run in result.runs.items():
         path = out / f"posterior_{key}.nc"
         run.save_netcdf(path)

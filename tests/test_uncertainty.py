@@ -40,8 +40,16 @@ def test_budget_command_writes_every_output_and_passes_the_gates(small_bundle, t
     for needed in ("ring-down noise", "H: f_c_hz", "t_cut choice", "line-shape model"):
         assert any(n.startswith(needed) for n in names), needed
     for f in ("budget.md", "budget.csv", "posterior_h.nc", "posterior_line.nc", "posterior_cmds.nc",
-              "corner_h.png", "corner_line.png"):
+              "corner_h.png", "corner_line.png", "tau_posterior.csv"):
         assert (out / f).stat().st_size > 0, f
+    import csv
+    taus = list(csv.DictReader((out / "tau_posterior.csv").open()))
+    assert len({r["t_cut_s"] for r in taus}) == 6
+    # H moves short decays most: its share of u(tau) is larger at the line centre than at baseline
+    at4 = [r for r in taus if abs(float(r["t_cut_s"]) - 4e-6) < 1e-9]
+    short = min(at4, key=lambda r: float(r["tau_s"]))
+    long_ = max(at4, key=lambda r: float(r["tau_s"]))
+    assert float(short["u_h_s"]) / float(short["tau_s"]) > float(long_["u_h_s"]) / float(long_["tau_s"])
     # unbiased against the truth within the statistical uncertainty (3 sigma)
     a_true = truth["line"]["line_area_hz_per_m"]
     assert abs(s["line_area"]["value_si"] - a_true) < 3 * s["line_area"]["u_si"]
