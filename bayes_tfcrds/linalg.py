@@ -18,3 +18,19 @@ def covariance_from_fisher(fisher: np.ndarray) -> np.ndarray:
     scaled = f / (d[..., :, None] * d[..., None, :])
     inv = np.linalg.inv(scaled)
     return inv / (d[..., :, None] * d[..., None, :])
+
+
+def central_jacobian(fn, theta, steps) -> np.ndarray:
+    """d fn / d theta by central differences, shape (len(fn(theta)), len(theta)).
+
+    ``steps`` are absolute step sizes per parameter (in its unit): the callers choose them
+    relative to each parameter's scale, which matters when parameters span many decades.
+    """
+    theta = np.asarray(theta, float)
+    cols = []
+    for j, h in enumerate(np.broadcast_to(np.asarray(steps, float), theta.shape)):
+        tp, tm = theta.copy(), theta.copy()
+        tp[j] += h
+        tm[j] -= h
+        cols.append((np.asarray(fn(tp)) - np.asarray(fn(tm))) / (2.0 * h))
+    return np.stack(cols, axis=-1)

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .linalg import central_jacobian
 from .forward import filtered_response, first_index_at, grid_transfer_function, model_grids
 from .ringdown import _noise_rows
 from .transfer_function import TFParams
@@ -97,14 +98,10 @@ def line_gain(line_fit) -> np.ndarray:
     theta = np.asarray(line_fit.values, float)
     u = np.concatenate([s.u for s in spectra])
     model = _model_of(line_fit)
-    jac = np.empty((u.size, theta.size))
-    for j in range(theta.size):
-        h = 1e-6 * max(abs(theta[j]), 1e-3 * (line_fit.doppler_hwhm_hz if line_fit.names[j] == "position_offset_hz"
-                                               else max(abs(theta[j]), 1e-30)))
-        tp, tm = theta.copy(), theta.copy()
-        tp[j] += h
-        tm[j] -= h
-        jac[:, j] = (np.concatenate(model.predict(tp, spectra)) - np.concatenate(model.predict(tm, spectra))) / (2 * h)
+    scale = np.array([line_fit.doppler_hwhm_hz if n == "position_offset_hz" else max(abs(v), 1e-30)
+                      for n, v in zip(line_fit.names, theta)])
+    steps = 1e-6 * np.maximum(np.abs(theta), 1e-3 * scale)
+    jac = central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), theta, steps)
     jw = jac / u[:, None] ** 2
     # K = cov J^T W with the fit's covariance (zero rows/cols for parameters at a bound)
     return line_fit.cov @ jw.T

@@ -18,7 +18,7 @@ import numpy as np
 from scipy import optimize
 
 from .constants import C, line_area_to_cm2
-from .linalg import covariance_from_fisher
+from .linalg import central_jacobian, covariance_from_fisher
 from .lineshape import PROFILES, profile
 
 # shape parameters fitted by default per profile (delta0 is absorbed in the position)
@@ -243,13 +243,8 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
     sol = optimize.least_squares(resid, theta0 / scale, bounds=(lo / scale, np.full(len(names), np.inf)),
                                  x_scale="jac", xtol=1e-13, ftol=1e-13, gtol=1e-13, max_nfev=5000)
     theta = sol.x * scale
-    jac = np.empty((y.size, theta.size))
-    for j in range(theta.size):
-        h = 1e-6 * max(abs(theta[j]), 1e-3 * scale[j])
-        tp, tm = theta.copy(), theta.copy()
-        tp[j] += h
-        tm[j] -= h
-        jac[:, j] = (np.concatenate(model.predict(tp, spectra)) - np.concatenate(model.predict(tm, spectra))) / (2 * h) / u
+    steps = 1e-6 * np.maximum(np.abs(theta), 1e-3 * scale)
+    jac = central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), theta, steps) / u[:, None]
     r = resid(sol.x)
     chi2 = float(r @ r)
     # parameters pinned at their lower bound (e.g. Gamma2 = 0 when the data cannot resolve

@@ -23,7 +23,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import optimize
 
-from .linalg import covariance_from_fisher
+from .linalg import central_jacobian, covariance_from_fisher
 
 PARAM_NAMES = ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r")
 VARIANTS = ("letter", "causal")
@@ -286,13 +286,8 @@ def fit_beat_note(tf_data, variant: str = "causal", free=PARAM_NAMES, start: TFP
     def model(th):
         return th[-1] * np.abs(transfer_function(f, params.with_vector(th[:-1], free)))
 
-    jac = np.empty((len(f), len(theta)))
-    for j in range(len(theta)):
-        h = 1e-6 * max(abs(theta[j]), 1e-3)
-        tp, tm = theta.copy(), theta.copy()
-        tp[j] += h
-        tm[j] -= h
-        jac[:, j] = (model(tp) - model(tm)) / (2 * h) / sig
+    steps = 1e-6 * np.maximum(np.abs(theta), 1e-3)
+    jac = central_jacobian(model, theta, steps) / sig[:, None]
     r = (model(theta) - y) / sig
     chi2 = float(r @ r)
     dof = len(f) - len(theta)

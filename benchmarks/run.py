@@ -1,0 +1,173 @@
+"""Performance targets on reference problem R1, each printed with its measured value and PASS/FAIL.
+
+R1: one configuration (letter-D2), 101 spectral points, transients of 16384 samples at 20 ns,
+six t_cut values (606 transient fits). Ratios are measured within one run (the machine is
+noisy); memory is the peak resident set of a child process doing the R1 TF-CRDS fit.
+
+Usage:  python benchmarks/run.py [--seed N] [--quick]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import time
+from dataclasses import replace
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import optimize
+
+from bayes_tfcrds.analysis import calibrate
+from bayes_tfcrds.constants import C
+from bayes_tfcrds.ringdown import fit_ringdowns
+from bayes_tfcrds.simulate import Campaign, simulate_campaign
+from bayes_tfcrds.spectrum import crds_spectrum, fit_line
+from bayes_tfcrds.linefit import doppler_of
+from bayes_tfcrds.transfer_function import transfer_function
+
+T_CUTS = (2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6)
+RESULTS = []
+
+
+def report(name, value, target, ok, unit=""):
+    RESULTS.append({"target": name, "value": value, "limit": target, "pass": bool(ok)})
+    print(f"{'PASS' if ok else 'FAIL'}  {name}: {value:.3g}{unit} (target {target})", flush=True)
+
+
+def r1_bundle(seed, points=101, samples=16384, n_avg=20):
+    camp = replace(Campaign(), n_points=points, n_samples=samples, n_avg=n_avg)
+    b, truth = simulate_campaign(["letter-D2"], np.random.default_rng(seed), camp)
+    return b, truth
+
+
+def naive_fit(t, y, t_cut, tf, tau0):
+    """The straightforward way: least_squares per transient over (B, b, tau), the model built by
+    an FFT of the sampled exponential with history (extinction window) at every evaluation."""
+    dt = t[1] - t[0]
+    n_hist = 8000
+    n = sfft.next_fast_len(n_hist + t.size + 600)
+    s = t[0] + dt * (np.arange(n) - n_hist)
+    h = transfer_function(np.fft.rfftfreq(n, dt), tf)
+    sel = t >= t_cut
+
+    def model(p):
+        amp, off, tau = p
+        x = np.where(s < 0, 1.0, np.exp(-np.clip(s, 0, None) / tau))
+        g = np.fft.irfft(np.fft.rfft(x) * h, n)[n_hist:n_hist + t.size]
+        return off + amp * g
+
+    sol = optimize.least_squares(lambda p: (model(p) - y)[sel], [y[sel][0], 0.0, tau0], x_scale="jac")
+    return sol.x[2]
+
+
+def peak_memory_child(seed, points, samples):
+    code = (f"import numpy as np, resource, sys; sys.path.insert(0, 'benchmarks');"
+            f"from run import r1_bundle, T_CUTS; from bayes_tfcrds.analysis import calibrate;"
+            f"from bayes_tfcrds.ringdown import fit_ringdowns;"
+            f"b, _ = r1_bundle({seed}, {points}, {samples}, 2); c = b.configs['D2'];"
+            f"base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss;"
+            f"cal = calibrate(c, window='extinction');"
+            f"fit_ringdowns(c.ringdowns, T_CUTS, 'tf-crds', cal.params, 'extinction');"
+            f"print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    return int(out.stdout.strip().splitlines()[-1]) / 1024.0      # MiB (ru_maxrss is KiB on Linux)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seed", type=int, default=3)
+    ap.add_argument("--quick", action="store_true", help="skip the scaling series")
+    args = ap.parse_args(argv)
+    b, truth = r1_bundle(args.seed)
+    cfg = b.configs["D2"]
+    rd = cfg.ringdowns
+    print(f"R1: {rd.n_points} points x {rd.n_samples} samples x {len(T_CUTS)} t_cut = {rd.n_points * len(T_CUTS)} fits")
+    cal = calibrate(cfg, window="extinction")
+    tf = cal.params
+
+    t0 = time.perf_counter()
+    crds = fit_ringdowns(rd, T_CUTS, "crds")
+    t_crds = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    tfc = fit_ringdowns(rd, T_CUTS, "tf-crds", tf, "extinction")
+    t_tf = time.perf_counter() - t0
+    print(f"  CRDS {t_crds:.2f} s, TF-CRDS {t_tf:.2f} s (H given)")
+    report("TF-CRDS / CRDS time on R1", t_tf / t_crds, "<= 3", t_tf / t_crds <= 3.0, "x")
+
+    # straightforward implementation on a subset, scaled to 606 fits
+    sub = np.arange(0, rd.n_points, max(1, rd.n_points // 8))[:8]
+    t0 = time.perf_counter()
+    naive = [naive_fit(rd.time_s, rd.signal_v[i], 4e-6, tf, crds.tau_s[i, 2]) for i in sub]
+    t_naive = (time.perf_counter() - t0) / sub.size * rd.n_points * len(T_CUTS)
+    agree = np.max(np.abs(np.array(naive) / tfc.tau_s[sub, 2] - 1))
+    print(f"  straightforward least_squares: {t_naive:.0f} s for R1 (from {sub.size} fits); max |tau/tau - 1| "
+          f"against ours {agree:.1e}")
+    report("speed-up over straightforward least_squares", t_naive / t_tf, ">= 20", t_naive / t_tf >= 20, "x")
+
+    # propagation of 1000 H draws into A, against full refits
+    from bayes_tfcrds.uncertainty import BudgetOptions, run_budget
+    opts = BudgetOptions(posterior="laplace", n_h_draws=1000)
+    t0 = time.perf_counter()
+    res = run_budget(b, cfg, opts, np.random.default_rng(args.seed))
+    t_prop = time.perf_counter() - t0
+    report("1000 H draws propagated into A for R1 (whole Laplace budget)", t_prop, "<= 60 s", t_prop <= 60, " s")
+    gd = doppler_of(b.sample)
+    sens = res.summary["sensitivities_hz_per_m"]
+    from bayes_tfcrds.analysis import BEAT_FREE
+    h_star = replace(tf)
+    from bayes_tfcrds.transfer_function import TFParams
+    hs = res.summary["transfer_function"]
+    h_star = TFParams(**{k: hs[k] for k in ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r", "variant")})
+    draws = res.samples["h_draws"]
+    pick = np.random.default_rng(args.seed).choice(draws.shape[0], 6, replace=False)
+
+    def area(p):
+        f = fit_ringdowns(rd, [4e-6], "tf-crds", p, "extinction")
+        return fit_line([crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])], "qsdhcp", gd,
+                        b.sample.nu0_hz).line_area
+    a0 = area(h_star)
+    worst = 0.0
+    for k in pick:
+        p = h_star.with_vector(draws[k], BEAT_FREE)
+        full = area(p) - a0
+        lin = sum(sens[n] * (draws[k][i] - h_star.as_vector(BEAT_FREE)[i]) for i, n in enumerate(BEAT_FREE))
+        worst = max(worst, abs(full - lin))
+    u_a = res.budget_a.combined_u
+    report("linear propagation vs full refits (max |dA_lin - dA_full| / u(A), 6 draws)", worst / u_a, "<= 0.02",
+           worst / u_a <= 0.02)
+
+    mem = peak_memory_child(args.seed, 101, 16384)
+    report("peak memory of the R1 TF-CRDS fit (child process)", mem, "< 2048 MiB", mem < 2048, " MiB")
+
+    if not args.quick:
+        print("\nscaling (TF-CRDS fits of one t_cut; time s / peak MiB):")
+        for label, sizes in (("points", (25, 50, 100)), ("samples", (4096, 8192, 16384))):
+            ts, ms = [], []
+            for v in sizes:
+                bb, _ = r1_bundle(args.seed, points=v if label == "points" else 51,
+                                  samples=v if label == "samples" else 8192, n_avg=2)
+                c = bb.configs["D2"]
+                t0 = time.perf_counter()
+                fit_ringdowns(c.ringdowns, [4e-6], "tf-crds", tf, "extinction")
+                ts.append(time.perf_counter() - t0)
+                ms.append(peak_memory_child(args.seed, v if label == "points" else 51, v if label == "samples" else 8192))
+            x = np.array([bb_ for bb_ in sizes], float)
+            slope = np.polyfit(np.log(x), np.log(ts), 1)[0]
+            print(f"  {label:8s} {sizes}: time {np.round(ts, 2)} s (~{label}^{slope:.2f}), memory {np.round(ms)} MiB")
+        ts = []
+        for n in (250, 500, 1000):
+            t0 = time.perf_counter()
+            run_budget(b, cfg, replace(opts, n_h_draws=n), np.random.default_rng(1))
+            ts.append(time.perf_counter() - t0)
+        print(f"  draws    (250, 500, 1000): whole Laplace budget {np.round(ts, 1)} s (draws are O(n) and cheap)")
+    n_fail = sum(not r["pass"] for r in RESULTS)
+    print(f"\n{len(RESULTS) - n_fail} passed, {n_fail} failed")
+    with open("benchmarks/last_run.json", "w") as fh:
+        json.dump(RESULTS, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()
