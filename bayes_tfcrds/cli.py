@@ -1,4 +1,4 @@
-"""Command-line interface: ``bayes-tfcrds COMMAND ...``.
+"""Command-line interface: bayes-tfcrds COMMAND ...
 
 Every command takes ``--seed`` (the same inputs and seed give the same numbers) and reports
 bad input as one clear message naming what is wrong, with exit status 1 or 2.
@@ -20,6 +20,13 @@ def _floats(text: str):
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected comma-separated numbers in seconds, got {text!r}")
+
+
+def _one_float(text: str):
+    v = _floats(text)
+    if len(v) != 1:
+        raise argparse.ArgumentTypeError(f"expected one number in seconds, got {text!r}")
+    return v
 
 
 def _config(bundle, name):
@@ -74,7 +81,7 @@ def cmd_fit(args) -> int:
     w = csv.writer(buf)
     w.writerow(["nu_hz", "t_cut_s", "tau_s", "tau_u_s", "chi2_red", "status"])
     for nu, tc, tau, tau_u, chi2r, status in fits.rows():
-        w.writerow([f"{nu:.9f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status])
+        w.writerow([f"{nu:.3f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status])
     atomic_write_text(Path(args.output), buf.getvalue())
     n_clip = int(fits.clipped.sum())
     print(f"wrote {args.output}: {fits.tau_s.size} fits ({args.method}"
@@ -101,8 +108,9 @@ def cmd_simulate(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     save_bundle(bundle, args.output, truth=truth)
+    m = next(iter(bundle.configs.values())).ringdowns.n_points
     print(f"wrote {args.output}: configurations {list(bundle.configs)}, "
-          f"{campaign.n_points} points x {campaign.n_samples} samples, seed {args.seed}", file=sys.stderr)
+          f"{m} cavity modes x {campaign.n_samples} samples, seed {args.seed}", file=sys.stderr)
     return 0
 
 
@@ -136,7 +144,7 @@ def cmd_demo(args) -> int:
     out.mkdir(parents=True, exist_ok=True)
     campaign = Campaign() if not args.quick else replace(Campaign(), n_points=41, n_samples=8192, n_avg=20)
     presets = ["letter-D1", "letter-D2", "letter-D3", "letter-D4"]
-    print(f"simulating {', '.join(presets)} (seed {args.seed}, {campaign.n_points} points x "
+    print(f"simulating {', '.join(presets)} (seed {args.seed}, ~{campaign.n_points} cavity modes x "
           f"{campaign.n_samples} samples, {campaign.n_avg} averages) ...", file=sys.stderr)
     bundle, truth = simulate_campaign(presets, np.random.default_rng(args.seed), campaign)
     path = out / "campaign.h5"
@@ -153,7 +161,7 @@ def cmd_demo(args) -> int:
                 results.append(r)
                 lines.append(f"| {name} | {method} | {tc * 1e6:g} | {r['line_area']['value']:.6e} | "
                              f"{100 * (r['ratio']['value'] - 1):+.3f} | {100 * r['ratio']['u']:.3f} | {r['chi2_red']:.2f} |")
-                print(lines[-1], file=sys.stderr)
+                print(f"  {name} {method} t_cut {tc * 1e6:g} us done", file=sys.stderr)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     atomic_write_text(out / "summary.md", "# bayes-tfcrds demo: simulated letter campaign\n\n" + "\n".join(lines) + "\n")
     print("\n".join(lines))
@@ -206,15 +214,20 @@ def cmd_study(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="bayes-tfcrds", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="bayes-tfcrds",
+                                description="Transfer-function-corrected CRDS with honest uncertainty budgets. "
+                                            "The data contract (HDF5 measurement bundle) is FORMAT.md, shipped in "
+                                            "bayes_tfcrds/data/.")
     p.add_argument("--version", action="version", version=f"bayes-tfcrds {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
 
-    def common(sp):
-        sp.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    def common(sp, seed=0, note=""):
+        sp.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+        sp.add_argument("--seed", type=int, default=seed, help="random seed" + note)
         return sp
 
-    sp = common(sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"))
+    sp = common(sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
+                note=" (validate draws no random numbers)")
     sp.add_argument("file")
     sp.set_defaults(func=cmd_validate)
 
@@ -224,8 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
     sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
     sp.add_argument("--tcut", type=_floats, default=[2e-6, 4e-6, 8e-6], help="t_cut values in s, comma-separated")
-    sp.add_argument("--h", choices=["refined", "beat"], default="refined",
-                    help="transfer function: beat-note fit refined on ring-downs (default) or beat-note only")
+    sp.add_argument("--transfer-function", dest="h", choices=["refined", "beat"], default="refined",
+                    help="H for TF-CRDS: the beat-note fit refined on ring-downs, or the beat-note fit alone")
     sp.add_argument("-o", "--output", required=True, help="CSV file to write")
     sp.set_defaults(func=cmd_fit)
 
@@ -243,7 +256,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--config")
     sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
     sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
-    sp.add_argument("--tcut", type=_floats, default=[4e-6], help="one t_cut in s")
+    sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
     sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
     sp.add_argument("-o", "--output", required=True)
     sp.set_defaults(func=cmd_linefit)
@@ -252,7 +265,7 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--config")
     sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
     sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
-    sp.add_argument("--tcut", type=_floats, default=[4e-6], help="t_cut of the reported A, s")
+    sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
     sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
     sp.add_argument("--steps", type=int, help="MCMC steps per ensemble before the gates are checked")
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -266,10 +279,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--workers", type=int, default=2, help="local worker processes (default 2: both cores)")
     sp.set_defaults(func=cmd_study)
 
-    sp = common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"))
-    sp.add_argument("-o", "--output", default="demo-out", help="output folder (default demo-out)")
+    sp = common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"), seed=7)
+    sp.add_argument("-o", "--output", default="demo-out", help="output folder")
     sp.add_argument("--quick", action="store_true", help="a smaller campaign (for a first look)")
-    sp.set_defaults(func=cmd_demo, seed=7)
+    sp.set_defaults(func=cmd_demo)
     return p
 
 

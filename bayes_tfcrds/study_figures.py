@@ -174,7 +174,22 @@ def _budget_config(args):
                    max_steps=max(8 * steps, 24000))
     rng = np.random.default_rng([seed, sum(map(ord, name))])
     res = run_budget(bundle, bundle.configs[name], opts, rng)
-    return name, res.summary, res.budget_a.to_markdown(), res.budget_s.to_markdown()
+    return name, res.summary, res.budget_a.to_dict(), res.budget_s.to_dict()
+
+
+def _budget_table(rep, bd):
+    """A GUM budget (``Budget.to_dict()``) as an HTML table with the JCGM 100 columns."""
+    def g(x, n=3):
+        return "" if x is None else (x if isinstance(x, str) else f"{x:.{n}g}")
+    rows = [[c["name"], g(c["value"], 7), g(c["u"], 2), c["unit"], g(c["sensitivity"], 4), g(c["contribution"], 2),
+             "" if c["share"] is None else f"{100 * c['share']:.1f} %", g(c["dof"]), c["note"]] for c in bd["components"]]
+    corr = "; ".join(f"r({c['a']}, {c['b']}) = {c['r']:.2f}" for c in bd["correlations"])
+    rep.add_table(["quantity", "value", "standard uncertainty", "unit", "sensitivity coefficient",
+                   f"contribution to u ({bd['unit']})", "share", "dof", "note"], rows,
+                  caption=f"{bd['quantity']} = {bd['value']:.7g} {bd['unit']}; u_c = {bd['combined_u']:.2g} "
+                          f"{bd['unit']}; U (k = 2) = {bd['expanded_k2']:.2g} {bd['unit']}")
+    if corr:
+        rep.add_text("Correlations: " + corr)
 
 
 def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
@@ -188,7 +203,7 @@ def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
     numbers = {"configs": {}}
     rows = []
     ok = []
-    for name, s, md_a, md_s in results:
+    for name, s, bd_a, bd_s in results:
         numbers["configs"][name] = s
         passed = s["diagnostics"]["passed"]
         rep.add_diagnostic(f"{name}: MCMC gates (R-hat < 1.01, ESS > 400, > 50 tau_int)", passed,
@@ -201,7 +216,8 @@ def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
                      f"{s['ratio']['value']:.5f} +/- {s['ratio']['u']:.5f}", f"{s['en']:+.2f}",
                      f"{s['intensity']['value']:.5e} +/- {s['intensity']['u']:.1e}", f"{s['intensity']['en']:+.2f}"])
         rep.add_heading(f"{name}: budget")
-        rep.add_pre(md_a + "\n\n" + md_s)
+        _budget_table(rep, bd_a)
+        _budget_table(rep, bd_s)
     rep.add_heading("Line areas, CMDS comparison and intensities")
     rep.add_table(["config", "A (cm^-2)", "u(A) (cm^-2)", "A/A_ref", "E_n (k=2)", "S (cm/molecule)",
                    "E_n vs 8.0603(70)e-25"], rows)

@@ -104,7 +104,8 @@ def _h_posterior(config, options: BudgetOptions, rng, backend, progress):
 
     if options.posterior == "laplace":
         run = None
-        draws = rng.multivariate_normal(nat, beat.cov, size=options.n_h_draws)[:, :len(BEAT_FREE)]
+        draws = rng.multivariate_normal(nat, 0.5 * (beat.cov + beat.cov.T), size=options.n_h_draws,
+                                        method="eigh")[:, :len(BEAT_FREE)]
     else:
         run = run_ensembles(post, p0, post.sample_names, rng, n_ensembles=options.n_ensembles,
                             n_walkers=_walkers(x0.size), n_steps=options.n_steps, max_steps=options.max_steps,
@@ -149,7 +150,8 @@ def fit_transients_noise(rd, records, t_cut_s, tf, window):
 
 def _line_draws(lsq, rng, n=4000):
     """Laplace posterior: draws of the line parameters from the least-squares solution."""
-    return rng.multivariate_normal(lsq.values, lsq.cov, size=n)
+    cov = 0.5 * (lsq.cov + lsq.cov.T)       # parameters at a bound have zero rows: singular, still PSD
+    return rng.multivariate_normal(lsq.values, cov, size=n, method="eigh")
 
 
 def _line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress, label):
