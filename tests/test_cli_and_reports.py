@@ -84,6 +84,14 @@ def _chromium():
     return shutil.which("chromium") or shutil.which("chromium-browser")
 
 
+def _rendered_dom(exe, html_path, profile_dir) -> str:
+    """The page's DOM after headless Chromium has loaded it (no network, a fresh profile)."""
+    return subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+                           "--disable-background-networking", "--disable-component-update", "--disable-sync",
+                           f"--user-data-dir={profile_dir}", "--virtual-time-budget=5000", "--dump-dom",
+                           Path(html_path).as_uri()], capture_output=True, text=True, timeout=120).stdout
+
+
 def test_small_study_report_renders_in_a_browser(tmp_path):
     study = tmp_path / "s.toml"
     study.write_text('[study]\nname = "s"\nkind = "tcut"\nseed = 2\ntitle = "<script>alert(1)</script> t"\n'
@@ -97,10 +105,7 @@ def test_small_study_report_renders_in_a_browser(tmp_path):
     exe = _chromium()
     if exe is None:
         pytest.skip("chromium is not installed (.ci/run installs it)")
-    dom = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                          "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                          f"--user-data-dir={tmp_path / 'chromium'}", "--virtual-time-budget=5000", "--dump-dom",
-                          (tmp_path / "rep" / "s.html").as_uri()], capture_output=True, text=True, timeout=120).stdout
+    dom = _rendered_dom(exe, tmp_path / "rep" / "s.html", tmp_path / "chromium")
     assert 'data-images-ok="true"' in dom
     assert 'data-image-count="1"' in dom
 
@@ -110,8 +115,5 @@ def test_committed_reports_render_in_a_browser(tmp_path):
     if exe is None:
         pytest.skip("chromium is not installed (.ci/run installs it)")
     for html in (ROOT / "reports").glob("*/*.html"):
-        dom = subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                              "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                              f"--user-data-dir={tmp_path / html.stem}", "--virtual-time-budget=5000", "--dump-dom",
-                              html.as_uri()], capture_output=True, text=True, timeout=120).stdout
+        dom = _rendered_dom(exe, html, tmp_path / html.stem)
         assert 'data-images-ok="true"' in dom, html
