@@ -28,6 +28,21 @@ def _area_entry(value_si, u_si):
             "value_si": float(value_si), "u_si": float(u_si), "unit_si": "Hz/m"}
 
 
+def check_overlap(config):
+    """Refuse a CMDS reference that does not cover the ring-down spectrum's frequency range:
+    comparing areas of two spectra of different stretches of the line would mean nothing."""
+    if config.cmds is None:
+        return
+    rd_lo, rd_hi = np.min(config.ringdowns.nu_hz), np.max(config.ringdowns.nu_hz)
+    cm_lo, cm_hi = np.min(config.cmds.nu_hz), np.max(config.cmds.nu_hz)
+    inside = np.sum((config.cmds.nu_hz >= rd_lo) & (config.cmds.nu_hz <= rd_hi))
+    if cm_hi < rd_lo or cm_lo > rd_hi or inside < 8:
+        raise LineFitError(
+            f"/configs/{config.name}/cmds/nu_hz spans {cm_lo / 1e12:.6f}-{cm_hi / 1e12:.6f} THz and does not overlap "
+            f"the ring-down range /configs/{config.name}/ringdowns/nu_hz {rd_lo / 1e12:.6f}-{rd_hi / 1e12:.6f} THz "
+            f"({inside} CMDS points inside it; at least 8 needed)")
+
+
 def fit_reference(bundle, config, profile_name: str = "qsdhcp"):
     """Profile fit to the configuration's CMDS mode shifts (the reference A_ref), or None."""
     if config.cmds is None:
@@ -46,6 +61,7 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
     except AnalysisError as exc:
         raise LineFitError(str(exc)) from exc
     spec = crds_spectrum(fits.nu_hz, fits.tau_s[:, 0], fits.tau_u_s[:, 0])
+    check_overlap(config)
     if spec.nu_hz.size < 8:
         raise LineFitError(f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}")
     lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz)

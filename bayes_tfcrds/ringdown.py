@@ -273,12 +273,27 @@ class RingdownFits:
     noise_estimated: bool
     residuals_v: np.ndarray | None = field(default=None, repr=False)
 
+    record_end_s: float = np.inf
+
+    def status(self, i, j) -> str:
+        """``ok``, or why the fit at point i and t_cut j is not to be trusted as it stands.
+
+        ``record-short``: less than two decay times of record after t_cut, where the offset b and
+        tau are nearly degenerate (the fit's u(tau) says so, but a reader should be told).
+        """
+        if self.clipped[i]:
+            return "clipped"
+        if not self.converged[i, j]:
+            return "not-converged"
+        if self.record_end_s - self.t_cut_s[j] < 2.0 * self.tau_s[i, j]:
+            return "record-short"
+        return "ok"
+
     def rows(self):
         """(nu_hz, t_cut_s, tau_s, tau_u_s, chi2_red, status) per point and t_cut."""
         for i, nu in enumerate(self.nu_hz):
             for j, tc in enumerate(self.t_cut_s):
-                status = "clipped" if self.clipped[i] else ("ok" if self.converged[i, j] else "not-converged")
-                yield nu, tc, self.tau_s[i, j], self.tau_u_s[i, j], self.chi2_red[i, j], status
+                yield nu, tc, self.tau_s[i, j], self.tau_u_s[i, j], self.chi2_red[i, j], self.status(i, j)
 
 
 def fit_ringdowns(ringdowns, t_cuts_s, method="crds", tf: TFParams | None = None, window="extinction",
@@ -313,4 +328,4 @@ def fit_ringdowns(ringdowns, t_cuts_s, method="crds", tf: TFParams | None = None
     return RingdownFits(nu_hz=np.asarray(ringdowns.nu_hz), t_cut_s=t_cuts, tau_s=out["tau"], tau_u_s=out["tau_u"],
                         amplitude_v=out["amp"], offset_v=out["off"], chi2_red=out["chi2r"], converged=conv,
                         clipped=clipped, method=method, window=window if method == "tf-crds" else None,
-                        noise_estimated=est, residuals_v=resid)
+                        noise_estimated=est, residuals_v=resid, record_end_s=float(ringdowns.time_s[-1]))

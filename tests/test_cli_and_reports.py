@@ -117,3 +117,28 @@ def test_committed_reports_render_in_a_browser(tmp_path):
     for html in (ROOT / "reports").glob("*/*.html"):
         dom = _rendered_dom(exe, html, tmp_path / html.stem)
         assert 'data-images-ok="true"' in dom, html
+
+
+def test_cmds_that_does_not_overlap_the_ring_downs_is_refused(campaign):
+    from dataclasses import replace
+    from bayes_tfcrds.bundle import load_bundle
+    from bayes_tfcrds.linefit import LineFitError, analyse_line
+    b = load_bundle(campaign)
+    cfg = b.configs["D2"]
+    far = replace(cfg.cmds, nu_hz=cfg.cmds.nu_hz + 1e12)          # 1 THz away from the line
+    with pytest.raises(LineFitError, match=r"/configs/D2/cmds/nu_hz .* does not overlap"):
+        analyse_line(b, replace(cfg, cmds=far), method="crds")
+
+
+def test_records_too_short_for_the_decay_are_flagged(tmp_path):
+    out = tmp_path / "short.h5"
+    # 1024 samples at 20 ns: 20 us of record, shorter than twice the 32 us empty-cavity decay
+    assert main(["simulate", "--preset", "letter-D2", "--points", "15", "--samples", "1024", "--seed", "1",
+                 "-o", str(out)]) == 0
+    csv_out = tmp_path / "f.csv"
+    assert main(["fit", str(out), "--config", "D2", "--method", "crds", "--tcut", "2e-6", "-o", str(csv_out)]) == 0
+    rows = list(csv.DictReader(csv_out.open()))
+    status = {r["status"] for r in rows}
+    assert "record-short" in status                                 # the baseline decays
+    long_tau = max(rows, key=lambda r: float(r["tau_s"]))
+    assert long_tau["status"] == "record-short"

@@ -10,7 +10,8 @@ DT = 20e-9
 taus = st.floats(2e-6, 60e-6)
 chains = st.builds(TFParams, f_c_hz=st.floats(1e4, 5e5), a_r=st.floats(0.0, 40.0), f_r_hz=st.floats(2e6, 2e7),
                    gamma_r=st.floats(0.3, 3.0).filter(lambda g: abs(g - 0.5) > 1e-3), n_r=st.just(2.0))
-SETTINGS = settings(max_examples=25, deadline=None)
+# derandomized: CI explores the same examples every run (a failure is reproducible, never flaky)
+SETTINGS = settings(max_examples=25, deadline=None, derandomize=True)
 
 
 @SETTINGS
@@ -35,7 +36,10 @@ def test_where_the_record_starts_does_not_change_the_model(tau, tf, shift):
     t_b = t_a[shift:]
     ya = ringdown_model(t_a, tau, 0.7, 0.01, tf)[0]
     yb = ringdown_model(t_b, tau, 0.7, 0.01, tf)[0]
-    np.testing.assert_allclose(ya[shift:], yb, rtol=0, atol=2e-7)     # the wrap-around tolerance, 1e-7 of B
+    # each grid is within 2e-7 of B of the continuous model: the wrap-around tolerance (1e-7),
+    # the closing ramp's residual (<= 5e-8) and the margin of the settling time, which is estimated
+    # on a smoothed response; two grids therefore differ by at most 4e-7 of B (B = 0.7 V)
+    np.testing.assert_allclose(ya[shift:], yb, rtol=0, atol=4e-7 * 0.7)
 
 
 @SETTINGS
