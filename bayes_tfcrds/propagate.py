@@ -93,7 +93,6 @@ def line_gain(line_fit) -> np.ndarray:
     gain is that of weighted least squares at the solution (parameters held at a bound get
     zero rows, as in the fit's covariance).
     """
-    from .spectrum import LineModel  # noqa: F401  (documents the dependency)
     spectra = line_fit.spectra
     theta = np.asarray(line_fit.values, float)
     u = np.concatenate([s.u for s in spectra])

@@ -167,20 +167,18 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
     m = sig.shape[0]
     var = _noise_rows(noise_v, m, k, np.arange(m)) ** 2
 
-    def fisher_and_meat(j):
+    def fisher_meat_score(j):
         a_ = np.einsum("npk,nqk,nk->pq", j, j, wm)
         # score of each record summed over its truncations, then its noise variance
         u = np.zeros((m, j.shape[1], k))
         np.add.at(u, rows_of, j * wm[:, None, :])
-        return a_, np.einsum("mpk,mqk,mk->pq", u, u, var)
+        return a_, np.einsum("mpk,mqk,mk->pq", u, u, var), u
 
-    a, b = fisher_and_meat(jred)
+    a, b, score = fisher_meat_score(jred)
     a_inv = covariance_from_fisher(a)
     cov = a_inv @ b @ a_inv
     # influence of each record's samples on the refined parameters (delta method): lets callers
     # correlate the refinement's noise with other uses of the same records
-    score = np.zeros((m, len(free), k))
-    np.add.at(score, rows_of, jred * wm[:, None, :])
     influence = np.einsum("pq,mqk->mpk", a_inv, score)
     sens_names = tuple(sens_names) or free
     a_full = b_full = None
@@ -189,7 +187,7 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
         if missing:
             raise ValueError(f"sens_names must include the refined parameters {missing}")
         _, _, _, _, jfull = _evaluate(t, y, wm, t_cut, tf, sens_names, window, tau)
-        a_full, b_full = fisher_and_meat(jfull)
+        a_full, b_full, _ = fisher_meat_score(jfull)
     else:
         a_full, b_full = a, b
     dof = int(mask.sum() - 3 * n - len(free))

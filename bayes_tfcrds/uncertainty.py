@@ -223,7 +223,6 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
         line_flat = runs["line"].flat()
     ia = lsq.names.index("line_area")
     a_noise = line_flat[:, ia]
-    dA = np.zeros(1)
     sens_a = {}
     if options.method == "tf-crds":
         ok = np.isfinite(fits.tau_s[:, j0]) & np.isfinite(fits.tau_u_s[:, j0]) & (fits.tau_u_s[:, j0] > 0)
@@ -243,7 +242,7 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
         ir = [BEAT_FREE.index(n) for n in refd]
         centre = h_star.as_vector(BEAT_FREE)
         total_o = grad_a[io] + (grad_a[ir] @ gain if ir else 0.0)
-        d_beat = (h_draws[:, io] - centre[io]) @ total_o
+        d_beat = (h_draws[:, io] - centre[io]) @ total_o         # the beat-note part of each draw
         d_ref = np.zeros(a_noise.size)
         if ir:
             # ring-down noise reaches A twice: through each tau (the line fit) and through the refined
@@ -300,28 +299,23 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
 
     # 4. budgets
     a_hat = float(np.mean(a_total))
-    comps = [Component("ring-down noise (line fit given H)", None, float(np.std(a_noise)), 1.0, "Hz/m",
+    comps = [Component("ring-down noise (line fit given H)", None, u_dir, 1.0, "Hz/m",
                        note="Type A: sd of the line posterior given the refined H")]
     corr = {}
     if options.method == "tf-crds":
         # one H draw is delta = (G delta_O + eps_refine, delta_O): the beat-note parameters O enter
         # with total derivatives (directly and through the refined parameters' conditional), the
         # refined ones with their refinement scatter eps (ring-down noise acting through H)
+        # (others, refd, io, ir, centre, total_o: the decomposition of step 3)
         units = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
-        others, refd, gain = h_parts["others"], h_parts["refined"], h_parts["gain"]
-        io = [BEAT_FREE.index(n) for n in others]
-        ir = [BEAT_FREE.index(n) for n in refd]
-        grad = np.array([sens_a[n] for n in BEAT_FREE])
-        total_o = grad[io] + (grad[ir] @ gain if ir else 0.0)
-        centre = h_star.as_vector(BEAT_FREE)
-        delta = h_draws - centre
+        delta_o = h_draws[:, io] - centre[io]
         for k, n in enumerate(refd):
             u_r = float(np.sqrt(refined.cov[k, k]))
-            comps.append(Component(f"H: {n} (refined on ring-downs)", float(centre[ir[k]]), u_r, float(grad[ir[k]]),
+            comps.append(Component(f"H: {n} (refined on ring-downs)", float(centre[ir[k]]), u_r, float(grad_a[ir[k]]),
                                    units[n], note="Type A: sandwich u of the multi-ring-down refinement given the "
                                                   "other H parameters (ring-down noise acting through H)"))
-        osd = delta[:, io].std(axis=0)
-        oc = np.atleast_2d(np.corrcoef(delta[:, io].T)) if len(io) > 1 else np.ones((1, 1))
+        osd = delta_o.std(axis=0)
+        oc = np.atleast_2d(np.corrcoef(delta_o.T)) if len(io) > 1 else np.ones((1, 1))
         for k, n in enumerate(others):
             note = "Type A: beat-note posterior" + (f"; sensitivity includes the shift of the refined "
                                                     f"{', '.join(refd)} it causes" if refd else "")
