@@ -18,7 +18,7 @@ import numpy as np
 
 from .linalg import covariance_from_fisher
 from .forward import filtered_response, first_index_at, grid_transfer_function, model_grids
-from .ringdown import _gauss_newton, _noise_rows, _solve_linear, _TfCrds, fit_transients
+from .ringdown import _dense_sums, _gauss_newton, _noise_rows, _solve_linear, _TfCrds, fit_transients
 from .transfer_function import PARAM_NAMES, TFParams
 
 
@@ -73,7 +73,7 @@ class RefinedTF:
 def _evaluate(t, y, wm, t_cut, tf, free, window, tau_start):
     """Re-fit tau per row under ``tf``; return chi2, tau, residuals and reduced Jacobian."""
     model = _TfCrds(t, t_cut, tf, window, wm > 0)
-    tau, conv = _gauss_newton(model, y, wm, tau_start)
+    tau, conv = _gauss_newton(_dense_sums(model, y, wm), wm.sum(-1), np.einsum("ij,ij->i", wm, y), tau_start)
     n, k = y.shape
     p = len(free)
     uniq, group = np.unique(t_cut, return_inverse=True)

@@ -5,6 +5,11 @@ exactly inside the fit (variable projection), so the nonlinear search is one-dim
 transient. All transients (spectral points x truncation times) are iterated together with a
 damped Gauss-Newton step on tau; the TF-CRDS fit starts from the CRDS solution.
 
+The step needs only weighted sums of g, dg/dtau and the data. With one noise level per
+transient, plain CRDS and TF-CRDS with a rational H (Eq. 2 with n_r = 2) in the extinction
+window get them in closed form from ``expsum.py`` (g never formed, no FFT); otherwise (per-sample
+noise, the letter window, fractional n_r) g comes from the FFT model of ``forward.py``.
+
 Units: time and tau in s, signals and noise in V.
 """
 from __future__ import annotations
@@ -15,6 +20,8 @@ import numpy as np
 
 from .linalg import covariance_from_fisher
 from .forward import WINDOWS, filtered_response, first_index_at, grid_transfer_function, model_grids
+from .chain import chain_from_tf
+from .expsum import BlockedData, SumsModel
 from .transfer_function import TFParams
 
 METHODS = ("crds", "tf-crds")
@@ -63,17 +70,20 @@ def _solve_linear(wm, g, y):
     return (s1 * sgy - sg * sy) / det, (sgg * sy - sg * sgy) / det
 
 
-def _three_interval_tau(t, y, mask):
+def _three_interval_tau(t, sig, first, rows_of):
     """Model-free starting tau: for y = b + B exp(-t/tau), sums over three equal consecutive
-    intervals satisfy (S2 - S3)/(S1 - S2) = exp(-D/tau)."""
-    n = mask.sum(-1)
-    first = np.argmax(mask, axis=-1)
+    intervals after each row's first sample satisfy (S2 - S3)/(S1 - S2) = exp(-D/tau).
+
+    ``sig`` (m, k) transients, ``first`` (n,) first fitted index of each row, ``rows_of`` (n,).
+    One cumulative sum per transient serves all its t_cut rows.
+    """
+    k = sig.shape[1]
+    n = k - first
     n3 = np.maximum(n // 3, 1)
-    cs = np.concatenate([np.zeros((y.shape[0], 1)), np.cumsum(np.where(mask, y, 0.0), axis=-1)], axis=-1)
-    r = np.arange(y.shape[0])
+    cs = np.concatenate([np.zeros((sig.shape[0], 1)), np.cumsum(sig, axis=-1)], axis=-1)
 
     def seg(i0, i1):
-        return cs[r, i1] - cs[r, i0]
+        return cs[rows_of, np.minimum(i1, k)] - cs[rows_of, np.minimum(i0, k)]
 
     s1 = seg(first, first + n3)
     s2 = seg(first + n3, first + 2 * n3)
@@ -132,31 +142,35 @@ class _TfCrds:
         return g, dg
 
 
-def _gauss_newton(model, y, wm, tau0, max_iter=50, rtol=1e-9):
+def _dense_sums(model, y, wm):
+    """The step's weighted sums from a model that forms g and dg/dtau (zero outside the fit range)."""
+    def sums(tau, idx):
+        g, dg = model(tau, idx)
+        w, yy = wm[idx], y[idx]
+        wg, wd = w * g, w * dg
+        return wg.sum(-1), _dot(wg, g), _dot(wg, yy), wd.sum(-1), _dot(wd, g), _dot(wd, yy), _dot(wd, dg)
+    return sums
+
+
+def _gauss_newton(sums, s1_all, sy_all, tau0, max_iter=50, rtol=1e-9):
     """Damped Gauss-Newton on tau with B, b projected out (Kaufman's variable projection).
 
-    ``model`` returns g and dg/dtau, zero outside each row's fit range. With r = y - B g - b
-    orthogonal to span{g, 1} at the profiled B, b, the step needs only weighted dot products
-    of g, dg and y, so the residual is never formed.
+    With r = y - B g - b orthogonal to span{g, 1} at the profiled B, b, the step needs only the
+    weighted sums of g, dg/dtau and y that ``sums(tau, rows)`` returns (sg, sgg, sgy, sd, sdg,
+    sdy, sdd), so neither the residual nor, for the exponential-sum models, g itself is formed.
+    ``s1_all`` and ``sy_all`` are the per-row sums of the weights and of w y.
     """
     tau = tau0.copy()
     n = tau.size
     rows = np.arange(n)
     active = np.ones(n, bool)
     converged = np.zeros(n, bool)
-    s1_all = wm.sum(-1)
-    sy_all = _dot(wm, y)
     for _ in range(max_iter):
         idx = rows[active]
         if idx.size == 0:
             break
-        g, dg = model(tau[idx], idx)
-        w = wm[idx]
-        yy = y[idx]
-        wg, wd = w * g, w * dg
+        sg, sgg, sgy, sd, sdg, sdy, sdd = sums(tau[idx], idx)
         s1, sy = s1_all[idx], sy_all[idx]
-        sg, sgg, sgy = wg.sum(-1), _dot(wg, g), _dot(wg, yy)
-        sd, sdg, sdy, sdd = wd.sum(-1), _dot(wd, g), _dot(wd, yy), _dot(wd, dg)
         det = s1 * sgg - sg * sg
         amp = (s1 * sgy - sg * sy) / det
         off = (sgg * sy - sg * sgy) / det
@@ -207,22 +221,78 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
         raise ValueError(f"t_cut = {bad:g} s is beyond the record (last sample at {t[-1]:g} s)")
     if np.any(t_cut < 0):
         raise ValueError("t_cut is counted from laser extinction and must be >= 0 s")
-    y = sig[rows_of]
     first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut])
+    if method == "tf-crds" and (tf is None or window not in WINDOWS):
+        raise ValueError("tf-crds needs a transfer function and a window "
+                         f"({WINDOWS}), got tf={tf!r}, window={window!r}")
+    noise = None if noise_v is None else np.asarray(noise_v, float)
+    if noise is None or noise.ndim == 1:
+        # one weight per transient: the exponential-sum path, no dense model arrays
+        w = np.ones(n) if noise is None else 1.0 / noise[rows_of] ** 2
+        data = BlockedData(sig, first, rows_of, w, dt)
+        t_first = t[0] + dt * first
+        s1 = w * data.n
+        model = SumsModel(data, None, t_first, t_cut)
+        tau0 = _three_interval_tau(t, sig, first, rows_of) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
+        tau, conv = _gauss_newton(model, s1, data.sum_wy, tau0)
+        if method == "tf-crds":
+            chain = _rational_chain(tf) if window == "extinction" else None
+            if chain is not None:
+                model = SumsModel(data, chain, t_first, t_cut)
+                tau, conv = _gauss_newton(model, s1, data.sum_wy, tau)
+            else:
+                mask = np.arange(t.size)[None, :] >= first[:, None]
+                dense = _TfCrds(t, t_cut, tf, window, mask)
+                tau, conv = _gauss_newton(_dense_sums(dense, sig[rows_of], mask * w[:, None]), s1, data.sum_wy, tau)
+        else:
+            window = None
+        sg, sgg, sgy, sd, sdg, sdy, sdd = model(tau, np.arange(n))
+        det = s1 * sgg - sg * sg
+        amp = (s1 * sgy - sg * data.sum_wy) / det
+        off = (sgg * data.sum_wy - sg * sgy) / det
+        # chi2 = y'Wy - beta' X'Wy at the least-squares beta (no residual array needed)
+        chi2 = np.maximum(data.sum_wyy - amp * sgy - off * data.sum_wy, 0.0)
+        fisher = np.empty((n, 3, 3))
+        fisher[:, 0, 0], fisher[:, 0, 1], fisher[:, 1, 1] = sgg, sg, s1
+        fisher[:, 0, 2], fisher[:, 1, 2], fisher[:, 2, 2] = amp * sdg, amp * sd, amp * amp * sdd
+        fisher[:, 1, 0], fisher[:, 2, 0], fisher[:, 2, 1] = fisher[:, 0, 1], fisher[:, 0, 2], fisher[:, 1, 2]
+        n_used = data.n
+        dof = n_used - 3
+        resid = None
+        if keep_residuals:
+            rows = np.arange(n)
+            if method == "tf-crds" and not isinstance(model, SumsModel):
+                g = dense(tau, rows, derivative=False)
+            else:
+                g = model.response(t, tau, rows)
+            mask = np.arange(t.size)[None, :] >= first[:, None]
+            resid = np.where(mask, sig[rows_of] - amp[:, None] * g - off[:, None], 0.0)
+        if noise is None:
+            s2 = chi2 / np.maximum(dof, 1)
+            noise_used = np.sqrt(s2)
+            fisher = fisher / s2[:, None, None]
+            chi2 = chi2 / s2
+        else:
+            noise_used = noise[rows_of]
+        cov = covariance_from_fisher(fisher)
+        return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
+                             chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=noise is None,
+                             converged=conv, t_cut_s=t_cut, method=method, window=window,
+                             residuals_v=resid)
+
+    # per-sample noise: dense model arrays
+    y = sig[rows_of]
     mask = np.arange(t.size)[None, :] >= first[:, None]
     noise = _noise_rows(noise_v, n, t.size, rows_of)
-    wm = mask / noise**2 if noise is not None else mask.astype(float)
-
+    wm = mask / noise**2
+    s1, sy = wm.sum(-1), _dot(wm, y)
     crds = _Crds(t, t_cut, mask)
-    tau0 = _three_interval_tau(t, y, mask) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
-    tau, conv = _gauss_newton(crds, y, wm, tau0)
+    tau0 = _three_interval_tau(t, sig, first, rows_of) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
+    tau, conv = _gauss_newton(_dense_sums(crds, y, wm), s1, sy, tau0)
     model = crds
     if method == "tf-crds":
-        if tf is None or window not in WINDOWS:
-            raise ValueError("tf-crds needs a transfer function and a window "
-                             f"({WINDOWS}), got tf={tf!r}, window={window!r}")
         model = _TfCrds(t, t_cut, tf, window, mask)
-        tau, conv = _gauss_newton(model, y, wm, tau)
+        tau, conv = _gauss_newton(_dense_sums(model, y, wm), s1, sy, tau)
     else:
         window = None
 
@@ -231,12 +301,7 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
     resid = np.where(mask, y - amp[:, None] * g - off[:, None], 0.0)
     n_used = mask.sum(-1)
     dof = n_used - 3
-    if noise is None:
-        s2 = (resid**2).sum(-1) / np.maximum(dof, 1)
-        noise_used = np.sqrt(s2)
-        wm = mask / s2[:, None]
-    else:
-        noise_used = np.sqrt((noise**2 * mask).sum(-1) / n_used)
+    noise_used = np.sqrt((noise**2 * mask).sum(-1) / n_used)
     chi2 = (wm * resid**2).sum(-1)
     # Fisher matrix over (B, b, tau)
     cols = (g, np.ones_like(g), amp[:, None] * dg)
@@ -247,9 +312,17 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
             fisher[:, i, j] = fisher[:, j, i] = _dot(wc, cols[j])
     cov = covariance_from_fisher(fisher)
     return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
-                         chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=noise is None,
+                         chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=False,
                          converged=conv, t_cut_s=t_cut, method=method, window=window,
                          residuals_v=resid if keep_residuals else None)
+
+
+def _rational_chain(tf: TFParams):
+    """The chain of Eq. 2 as poles and residues when it has them (n_r = 2), else None."""
+    try:
+        return chain_from_tf(tf)
+    except ValueError:
+        return None
 
 
 @dataclass(frozen=True)
