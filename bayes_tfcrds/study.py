@@ -6,7 +6,7 @@ Study file layout (every key optional unless marked)::
     [study]
     name = "letter_tcut"          # required
     title = "..."                 # shown on the report
-    kind = "tcut"                 # required: tcut | figures | window_history | budgets
+    kind = "tcut"                 # required: tcut | figures | window_history | budgets | coverage
     seed = 7                      # the simulation and sampling seed
 
     [campaign]                    # simulate (default) ...
@@ -16,6 +16,7 @@ Study file layout (every key optional unless marked)::
     averages = 100                # acquisitions per transient
     effects = ["etalon:amplitude_per_m=1e-7"]
     # bundle = "data/campaign.h5" # ... or load a measurement bundle instead
+    campaigns = 200               # coverage: simulated campaigns (truths drawn per campaign)
 
     [analysis]
     methods = ["crds", "tf-crds"]
@@ -24,6 +25,8 @@ Study file layout (every key optional unless marked)::
     profile = "qsdhcp"
     windows = ["extinction"]
     mcmc_steps = 3000             # budgets: MCMC steps per ensemble before the gates are checked
+    posterior = "laplace"         # coverage: the budget's posterior, laplace | mcmc
+    mcmc_campaigns = 20           # coverage: the first N campaigns again with MCMC (cross-check)
 
 An invalid file is refused with the offending key named.
 """
@@ -38,11 +41,12 @@ import numpy as np
 
 SCHEMA = {
     "study": {"name": str, "title": str, "description": str, "kind": str, "seed": int},
-    "campaign": {"presets": [str], "points": int, "samples": int, "averages": int, "effects": [str], "bundle": str},
+    "campaign": {"presets": [str], "points": int, "samples": int, "averages": int, "effects": [str], "bundle": str,
+                 "campaigns": int},
     "analysis": {"methods": [str], "t_cuts_us": [float], "t_cut_us": float, "profile": str, "windows": [str],
-                 "mcmc_steps": int},
+                 "mcmc_steps": int, "posterior": str, "mcmc_campaigns": int},
 }
-KINDS = ("tcut", "figures", "window_history", "budgets")
+KINDS = ("tcut", "figures", "window_history", "budgets", "coverage")
 LETTER_BIAS = {"D1": (0.06, 41), "D2": (0.03, 87), "D3": (0.15, 74), "D4": (0.28, 43)}   # % and factor
 
 
@@ -71,6 +75,9 @@ class Study:
     mcmc_steps: int
     path: str
     text: str
+    n_campaigns: int = 0
+    posterior: str = "mcmc"
+    mcmc_campaigns: int = 0
 
 
 def _check_type(where, value, kind):
@@ -126,9 +133,17 @@ def load_study(path) -> Study:
             parse_effect(e)
         except ValueError as exc:
             raise StudyError(f"{path}: campaign.effects[{i}]: {exc}")
-    for key, lo, hi in (("points", 8, 2000), ("samples", 256, 1 << 20), ("averages", 1, 100000)):
+    for key, lo, hi in (("points", 8, 2000), ("samples", 256, 1 << 20), ("averages", 1, 100000),
+                        ("campaigns", 1, 100000)):
         if key in cp and not lo <= cp[key] <= hi:
             raise StudyError(f"{path}: campaign.{key} = {cp[key]} is outside [{lo}, {hi}]")
+    if an.get("posterior", "mcmc") not in ("mcmc", "laplace"):
+        raise StudyError(f"{path}: analysis.posterior must be 'mcmc' or 'laplace', got {an['posterior']!r}")
+    if an.get("mcmc_campaigns", 0) < 0:
+        raise StudyError(f"{path}: analysis.mcmc_campaigns must be >= 0")
+    if st["kind"] == "coverage" and ("bundle" in cp or "effects" in cp):
+        raise StudyError(f"{path}: a coverage study simulates its own campaigns: campaign.bundle and "
+                         "campaign.effects do not apply")
     for i, m in enumerate(an.get("methods", [])):
         if m not in ("crds", "tf-crds"):
             raise StudyError(f"{path}: analysis.methods[{i}] = {m!r} must be 'crds' or 'tf-crds'")
@@ -154,7 +169,8 @@ def load_study(path) -> Study:
                  methods=tuple(an.get("methods", ["crds", "tf-crds"])), t_cuts_s=t_cuts,
                  t_cut_s=float(an.get("t_cut_us", 4)) * 1e-6, profile=an.get("profile", "qsdhcp"),
                  windows=tuple(an.get("windows", ["extinction"])), mcmc_steps=an.get("mcmc_steps", 3000),
-                 path=str(path), text=text)
+                 path=str(path), text=text, n_campaigns=cp.get("campaigns", 200),
+                 posterior=an.get("posterior", "mcmc"), mcmc_campaigns=an.get("mcmc_campaigns", 0))
 
 
 def campaign_of(study: Study, outdir: Path):
@@ -177,15 +193,22 @@ def run_study(path, outdir, progress: bool = False, pool=None):
     study = load_study(path)
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
-    bundle, truth, bundle_path = campaign_of(study, out)
     rep = Report(title=study.title)
     if study.description:
         rep.add_text(study.description)
-    runner = {"tcut": _study_tcut, "figures": _study_figures, "window_history": _study_window_history,
-              "budgets": _study_budgets}[study.kind]
-    numbers = runner(study, bundle, truth, rep, out, progress=progress, pool=pool)
-    rep.provenance = provenance(seeds={"study": study.seed}, inputs=[bundle_path], study_text=study.text,
-                                extra={"bundle description": bundle.description or ""})
+    if study.kind == "coverage":
+        # many campaigns, each simulated inside its own task: no single bundle
+        from .calibration_study import coverage_study
+        numbers = coverage_study(study, rep, out, progress=progress, pool=pool)
+        rep.provenance = provenance(seeds={"study": study.seed, "campaign i": f"SeedSequence({study.seed}, "
+                                           "spawn_key=(i,))"}, study_text=study.text)
+    else:
+        bundle, truth, bundle_path = campaign_of(study, out)
+        runner = {"tcut": _study_tcut, "figures": _study_figures, "window_history": _study_window_history,
+                  "budgets": _study_budgets}[study.kind]
+        numbers = runner(study, bundle, truth, rep, out, progress=progress, pool=pool)
+        rep.provenance = provenance(seeds={"study": study.seed}, inputs=[bundle_path], study_text=study.text,
+                                    extra={"bundle description": bundle.description or ""})
     import json
     from .cli import atomic_write_text
     atomic_write_text(out / "numbers.json", json.dumps(numbers, indent=2, default=float) + "\n")
