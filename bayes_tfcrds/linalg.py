@@ -34,3 +34,26 @@ def central_jacobian(fn, theta, steps) -> np.ndarray:
         tm[j] -= h
         cols.append((np.asarray(fn(tp)) - np.asarray(fn(tm))) / (2.0 * h))
     return np.stack(cols, axis=-1)
+
+
+def central_hessian(fn, theta, steps) -> np.ndarray:
+    """Second derivatives of a scalar ``fn`` at ``theta`` by central differences, steps ``steps``.
+
+    Diagonal: (f(+h) - 2 f0 + f(-h))/h^2. Off-diagonal from the two diagonal moves:
+    (f(+i+j) - f(+i) - f(+j) + 2 f0 - f(-i) - f(-j) + f(-i-j)) / (2 h_i h_j), exact for a quadratic,
+    with 2 p^2 + 1 evaluations in all. Units: those of fn per unit theta_i theta_j.
+    """
+    theta = np.asarray(theta, float)
+    h = np.asarray(steps, float)
+    p = theta.size
+    eye = np.eye(p) * h
+    f0 = fn(theta)
+    fp = np.array([fn(theta + eye[i]) for i in range(p)])
+    fm = np.array([fn(theta - eye[i]) for i in range(p)])
+    hess = np.diag((fp - 2 * f0 + fm) / h**2)
+    for i in range(p):
+        for j in range(i + 1, p):
+            fpp = fn(theta + eye[i] + eye[j])
+            fmm = fn(theta - eye[i] - eye[j])
+            hess[i, j] = hess[j, i] = (fpp - fp[i] - fp[j] + 2 * f0 - fm[i] - fm[j] + fmm) / (2 * h[i] * h[j])
+    return hess

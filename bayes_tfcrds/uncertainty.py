@@ -32,6 +32,7 @@ from .analysis import BEAT_FREE, DEFAULT_T_CUTS, beat_note_fit, select_refinemen
 from .budget import Budget, Component, normalized_error
 from .constants import C, intensity_to_cm_per_molecule, line_area_to_cm2, number_density
 from .linedata import load_line
+from .linalg import central_hessian
 from .linefit import doppler_of
 from .posterior import BeatNotePosterior, LinePosterior
 from .propagate import _model_of, line_gain, tau_influence, tau_sensitivities
@@ -234,6 +235,17 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
         dalpha_dtau = -1.0 / (C * fits.tau_s[good, j0] ** 2)
         grad_a = (k_gain * dalpha_dtau) @ s_tau                       # dA/dtheta_H (Hz/m per unit)
         sens_a = dict(zip(BEAT_FREE, grad_a))
+        # second order: a 1-sigma H draw bends A by ~2 % of u(A) beyond the tangent; the
+        # curvature, from full refits at +-1 sd of each parameter, carries it into the draws
+        h_centre = h_star.as_vector(BEAT_FREE)
+        h_sd = np.std(h_draws, axis=0)
+
+        def area_at(v):
+            f = fit_ringdowns(rd, [options.t_cut_s], method="tf-crds", tf=h_star.with_vector(v, BEAT_FREE),
+                              window=options.window)
+            return fit_line([crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])], options.profile, gd,
+                            nu_ref).line_area
+        hess_a = central_hessian(area_at, h_centre, np.where(h_sd > 0, h_sd, 1e-6 * np.abs(h_centre)))
     u_dir = float(np.std(a_noise))
     r_noise_ref = {}
     if options.method == "tf-crds":
@@ -243,6 +255,8 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
         centre = h_star.as_vector(BEAT_FREE)
         total_o = grad_a[io] + (grad_a[ir] @ gain if ir else 0.0)
         d_beat = (h_draws[:, io] - centre[io]) @ total_o         # the beat-note part of each draw
+        d_full = h_draws - centre
+        d_beat = d_beat + 0.5 * np.einsum("ni,ij,nj->n", d_full, hess_a, d_full)
         d_ref = np.zeros(a_noise.size)
         if ir:
             # ring-down noise reaches A twice: through each tau (the line fit) and through the refined
@@ -369,6 +383,8 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
                         "share": float(budget_a.shares()[c.name])} for c in comps],
         "a_by_t_cut": {f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in area_by_tcut.items()},
         "sensitivities_hz_per_m": {k: float(v) for k, v in sens_a.items()},
+        "hessian_hz_per_m": ({"names": list(BEAT_FREE), "matrix": hess_a.tolist()}
+                             if options.method == "tf-crds" else None),
     }
     if h_star is not None:
         summary["transfer_function"] = {"f_c_hz": h_star.f_c_hz, "a_r": h_star.a_r, "f_r_hz": h_star.f_r_hz,
@@ -447,6 +463,9 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
 
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
+    # temporary files left by an earlier run that was killed while writing (names as below)
+    for stale in [*out.glob(".*.tmp"), *out.glob(".corner_*.png.tmp.png")]:
+        stale.unlink(missing_ok=True)
     written = []
     summary = dict(result.summary)
     if seed is not None:
