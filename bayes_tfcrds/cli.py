@@ -176,16 +176,26 @@ def cmd_budget(args) -> int:
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     opts = BudgetOptions(method=args.method, window=args.window, t_cut_s=args.tcut[0], profile=args.profile)
-    if args.steps is not None:
+    if args.steps is not None or args.max_steps is not None:
         from dataclasses import replace
-        opts = replace(opts, n_steps=args.steps, max_steps=max(args.steps * 8, opts.max_steps))
+        n_steps = opts.n_steps if args.steps is None else args.steps
+        max_steps = max(n_steps * 8, opts.max_steps) if args.max_steps is None else args.max_steps
+        if not 1 <= n_steps <= max_steps:
+            print(f"error: need 1 <= --steps ({n_steps}) <= --max-steps ({max_steps})", file=sys.stderr)
+            return 2
+        opts = replace(opts, n_steps=n_steps, max_steps=max_steps)
     try:
-        res = run_budget(bundle, config, opts, np.random.default_rng(args.seed), outdir=args.output,
-                         progress=not args.quiet)
-    except (LineFitError, AnalysisError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
-    write_outputs(res, args.output, seed=args.seed)
+        try:
+            res = run_budget(bundle, config, opts, np.random.default_rng(args.seed), outdir=args.output,
+                             progress=not args.quiet)
+        except (LineFitError, AnalysisError, ValueError) as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 1
+        write_outputs(res, args.output, seed=args.seed)
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: the chains sampled so far are kept in {Path(args.output) / 'chains_*.h5'}; "
+              "run the same command again to resume (same seed, same result)", file=sys.stderr)
+        return 130
     s = res.summary
     print(res.budget_a.to_markdown())
     if s["status"] != "ok":
@@ -268,6 +278,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
     sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
     sp.add_argument("--steps", type=int, help="MCMC steps per ensemble before the gates are checked")
+    sp.add_argument("--max-steps", type=int, help="longest run per ensemble; a run still missing a gate then is "
+                                                  "reported as failed (default max(8 x steps, 24000))")
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.set_defaults(func=cmd_budget)

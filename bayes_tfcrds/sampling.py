@@ -45,7 +45,8 @@ Determinism and resume
     random numbers when a run starts from a state with known log-probabilities), so the
     chain does not depend on where chunks, extensions or interruptions fall: a run that
     is interrupted (KeyboardInterrupt, SIGKILL) and rerun with the same arguments is bit
-    for bit the uninterrupted run.
+    for bit the uninterrupted run. Ctrl-C while sampling commits the steps already taken
+    and then raises KeyboardInterrupt (a second Ctrl-C stops at once).
 
     With ``backend_path`` the commits go to an HDF5 file in emcee's ``HDFBackend`` layout
     (group ``ensemble{i}``: ``chain``, ``log_prob``, ``accepted``, attrs ``iteration`` and
@@ -53,22 +54,27 @@ Determinism and resume
     file can be read with ``emcee.backends.HDFBackend(path, name="ensemble0")``. The file
     is open only while a finished chunk is written (never while log_prob runs); rows are
     written first and the ``iteration`` counter that makes them visible last, then the
-    file is flushed and closed. A kill at any other moment leaves every committed chunk
-    intact. (HDF5 is not journaled: a kill landing inside the few-ms write itself cannot
-    be excluded in principle.) Reusing a file with a different seed raises instead of
-    silently mixing chains.
+    file is flushed and closed. HDF5 is not journaled, so a kill inside that write is
+    recovered from on resume rather than excluded: each commit stores the generator state
+    in one of two alternating slots with a checksum of its rows, and resume takes the
+    newest commit whose rows check out (see ``_HDFStore``). Reusing a file with a
+    different seed raises instead of silently mixing chains.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import os
-import tempfile
+import secrets
+import signal
+import threading
 import warnings
 from dataclasses import dataclass, field
 from typing import Callable, Optional, Sequence
 
 import emcee
+import h5py
 import numpy as np
 from emcee.autocorr import auto_window
 from scipy.special import ndtri
@@ -271,9 +277,10 @@ class SamplingResult:
     def save_netcdf(self, path) -> None:
         """Write :meth:`to_inference_data` to ``path`` atomically (temp file + os.replace)."""
         path = os.path.abspath(os.fspath(path))
-        fd, tmp = tempfile.mkstemp(dir=os.path.dirname(path),
-                                   prefix="." + os.path.basename(path) + ".", suffix=".tmp")
-        os.close(fd)
+        # not mkstemp: its 0600 mode would stick to the result; this one follows the umask
+        tmp = os.path.join(os.path.dirname(path),
+                           f".{os.path.basename(path)}.{secrets.token_hex(6)}.tmp")
+        os.close(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666))
         try:
             self.to_inference_data().to_netcdf(tmp)
             with open(tmp, "rb+") as f:
@@ -330,24 +337,36 @@ class _MemoryStore:
 
 
 class _HDFStore:
-    """Committed chunks of one ensemble in an HDF5 file, emcee ``HDFBackend`` layout."""
+    """Committed chunks of one ensemble in an HDF5 file, emcee ``HDFBackend`` layout.
+
+    HDF5 is not journaled and a kill (or Ctrl-C) can land between any two writes of a
+    commit, so a commit does not rely on write order. The generator state that continues
+    the chain is kept in two slots used alternately, each tagged with the iteration it
+    belongs to and a SHA-256 of the rows of the chunk that ends there; the slot holding the
+    last good commit is never overwritten. On resume the slot matching ``iteration`` is
+    checked against the stored rows; if the last commit is incomplete the store rolls back
+    to the previous one, and a file that cannot be read at all is moved aside and the
+    ensemble restarts from its seed. The chain is a deterministic function of the seed, so
+    every one of these paths ends in the same samples.
+    """
+
+    _SLOTS = 2
 
     def __init__(self, path, name, n_walkers, ndim, fingerprint):
-        self.backend = emcee.backends.HDFBackend(os.fspath(path), name=name)
-        fresh = not self.backend.initialized
-        if not fresh:
-            with self.backend.open() as f:
-                g = f[name]
-                stored = g.attrs.get(_SEED_ATTR)
-                it = int(g.attrs["iteration"])
-                shape = (int(g.attrs["nwalkers"]), int(g.attrs["ndim"]))
-            if stored is None and it == 0:
-                fresh = True          # killed between creating the group and tagging it
-            elif stored != fingerprint:
-                raise ValueError(f"{path}:{name} was written with another seed or setup "
-                                 f"({stored!r} != {fingerprint!r}); use a new backend_path")
-            elif shape != (n_walkers, ndim):
-                raise ValueError(f"{path}:{name} holds shape {shape}, not {(n_walkers, ndim)}")
+        self.path = os.fspath(path)
+        self.backend = emcee.backends.HDFBackend(self.path, name=name)
+        self._state = None
+        fresh = True
+        if os.path.exists(self.path):
+            try:
+                fresh = not self._resume(name, n_walkers, ndim, fingerprint)
+            except _Damaged as exc:
+                aside = f"{self.path}.damaged-{os.getpid()}"
+                os.replace(self.path, aside)
+                warnings.warn(f"{self.path}: {exc}; moved to {aside} and sampling {name} from its "
+                              "seed again (the result does not depend on it)", RuntimeWarning,
+                              stacklevel=4)
+                self.backend = emcee.backends.HDFBackend(self.path, name=name)
         if fresh:
             self.backend.reset(n_walkers, ndim)
             with self.backend.open("a") as f:
@@ -355,7 +374,66 @@ class _HDFStore:
                 g.create_dataset("accepted_step", (0, n_walkers), maxshape=(None, n_walkers),
                                  dtype=np.uint8)
                 g.attrs[_SEED_ATTR] = fingerprint
-        self.iteration = int(self.backend.iteration)
+            self.iteration = 0
+
+    def _resume(self, name, n_walkers, ndim, fingerprint) -> bool:
+        """Pick up the last intact commit; False if the group is absent or holds nothing."""
+        try:
+            with h5py.File(self.path, "r") as f:
+                if name not in f:
+                    return False
+                g = f[name]
+                stored = g.attrs.get(_SEED_ATTR)
+                it = int(g.attrs["iteration"])
+                shape = (int(g.attrs["nwalkers"]), int(g.attrs["ndim"]))
+                if stored is None and it == 0:
+                    return False          # killed between creating the group and tagging it
+                if stored != fingerprint:
+                    raise ValueError(f"{self.path}:{name} was written with another seed or setup "
+                                     f"({stored!r} != {fingerprint!r}); use a new backend_path")
+                if shape != (n_walkers, ndim):
+                    raise ValueError(f"{self.path}:{name} holds shape {shape}, not "
+                                     f"{(n_walkers, ndim)}")
+                if it == 0:
+                    good = 0, None
+                else:
+                    good = self._last_intact(g, it)
+        except (OSError, KeyError, RuntimeError) as exc:
+            raise _Damaged(f"cannot be read ({type(exc).__name__}: {exc})") from exc
+        if good is None:
+            raise _Damaged(f"ensemble {name} has no intact commit")
+        n, state = good
+        if n != it:
+            with self.backend.open("a") as f:
+                f[name].attrs["iteration"] = n    # roll back over the incomplete commit
+        self.iteration, self._state = n, state
+        return n > 0
+
+    @staticmethod
+    def _rows_digest(g, lo, hi) -> str:
+        h = hashlib.sha256()
+        for key in ("chain", "log_prob", "accepted_step"):
+            h.update(np.ascontiguousarray(g[key][lo:hi]).tobytes())
+        return h.hexdigest()
+
+    def _slot(self, g, s):
+        pre = f"bayes_tfcrds_state{s}_"
+        if pre + "iteration" not in g.attrs:
+            return None
+        state = tuple(g.attrs[f"{pre}{i}"] for i in range(int(g.attrs[pre + "n"])))
+        return int(g.attrs[pre + "start"]), int(g.attrs[pre + "iteration"]), \
+            str(g.attrs[pre + "sha256"]), state
+
+    def _last_intact(self, g, it):
+        """(iteration, generator state) of the newest commit whose rows are on disk, or None."""
+        slots = [x for x in (self._slot(g, s) for s in range(self._SLOTS)) if x is not None]
+        if not slots:   # written before the slots existed: emcee's own attributes
+            return it, tuple(v for k, v in sorted(g.attrs.items()) if k.startswith("random_state_"))
+        n_rows = min(g[k].shape[0] for k in ("chain", "log_prob", "accepted_step"))
+        for lo, hi, digest, state in sorted(slots, key=lambda x: -x[1]):
+            if hi <= it and hi <= n_rows and self._rows_digest(g, lo, hi) == digest:
+                return hi, state
+        return None
 
     def append(self, chain, log_prob, accepted, random_state):
         k = chain.shape[0]
@@ -365,22 +443,41 @@ class _HDFStore:
             for key, v in (("chain", chain), ("log_prob", log_prob), ("accepted_step", accepted)):
                 g[key].resize(it + k, axis=0)
                 g[key][it:it + k] = v
-            g["accepted"][:] = g["accepted"][:] + accepted.sum(axis=0)
-            for i, v in enumerate(random_state):
+            # recomputed, not incremented: a commit repeated after an interruption counts once
+            g["accepted"][:] = g["accepted_step"][:it + k].sum(axis=0)
+            for i, v in enumerate(random_state):       # emcee's layout (HDFBackend readers)
                 g.attrs[f"random_state_{i}"] = v
+            # the slot not holding the last good commit (that one is never touched)
+            s = next(s for s in range(self._SLOTS)
+                     if g.attrs.get(f"bayes_tfcrds_state{s}_iteration", -1) != it)
+            pre = f"bayes_tfcrds_state{s}_"
+            g.attrs[pre + "iteration"] = -1             # invalid while it is being written
+            for i, v in enumerate(random_state):
+                g.attrs[f"{pre}{i}"] = v
+            g.attrs[pre + "n"] = len(random_state)
+            g.attrs[pre + "start"] = it
+            g.attrs[pre + "sha256"] = self._rows_digest(g, it, it + k)
+            g.attrs[pre + "iteration"] = it + k
             g.attrs["iteration"] = it + k      # commit point: rows above become visible
             f.flush()
         self.iteration = it + k
+        self._state = tuple(random_state)
 
     def last(self):
-        s = self.backend.get_last_sample()
-        return s.coords, s.log_prob, tuple(s.random_state)
+        with self.backend.open() as f:
+            g = f[self.backend.name]
+            n = self.iteration
+            return g["chain"][n - 1], g["log_prob"][n - 1], self._state
 
     def read(self, n):
         with self.backend.open() as f:
             g = f[self.backend.name]
-            n = min(n, int(g.attrs["iteration"]))
+            n = min(n, self.iteration)
             return g["chain"][:n], g["log_prob"][:n], g["accepted_step"][:n].astype(bool)
+
+
+class _Damaged(Exception):
+    """A chain file that cannot be resumed from (killed inside a write, or not HDF5)."""
 
 
 def _same_rng_state(a, b) -> bool:
@@ -419,8 +516,9 @@ class _Ensemble:
                              f"log_prob {lp[~np.isfinite(lp)]} (outside the prior?)")
         return emcee.State(p0, log_prob=lp, random_state=self.rng0)
 
-    def advance_to(self, n_total, pbar=None):
-        """Run until the committed chain holds ``n_total`` steps (no-op if it already does)."""
+    def advance_to(self, n_total, pbar=None, stop=None):
+        """Run until the committed chain holds ``n_total`` steps (no-op if it already does);
+        on a ``stop`` request commit the steps taken so far and raise KeyboardInterrupt."""
         while self.store.iteration < n_total:
             if self.state is None:
                 self.state = self._initial_state()
@@ -434,14 +532,46 @@ class _Ensemble:
                                           skip_initial_state_check=self.store.iteration > 0):
                 if pbar is not None:
                     pbar.update(1)
+                if stop is not None and stop.requested:
+                    break                  # the chain does not depend on where chunks end
             rs = self.sampler.random_state
             self.store.append(rec.get_chain(), rec.get_log_prob(),
                               np.array(rec.accepted_steps), rs)
             self.state = emcee.State(st.coords.copy(), log_prob=st.log_prob.copy(),
                                      random_state=rs)
+            if stop is not None and stop.requested:
+                raise KeyboardInterrupt
 
     def read(self, n):
         return self.store.read(n)
+
+
+class _StopRequest:
+    """Ctrl-C while sampling: finish and commit the step in progress, then stop.
+
+    Python's default handler would raise KeyboardInterrupt inside log_prob, where emcee prints
+    a traceback and discards the chunk. Installed only over the default handler and in the
+    main thread; a second Ctrl-C interrupts at once.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def __enter__(self):
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        self.requested = True
+        signal.signal(signal.SIGINT, self._old)
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
 
 
 # --------------------------------------------------------------------------- runner
@@ -538,14 +668,16 @@ def run_ensembles(
         bars = [tqdm(total=n_steps, initial=min(e.store.iteration, n_steps),
                      desc=f"{prefix}ensemble {e.index}", position=e.index, leave=True)
                 for e in ensembles]
+    stop = _StopRequest()
     try:
+        stop.__enter__()
         target = int(n_steps)
         while True:
             for i, e in enumerate(ensembles):
                 if bars:
                     bars[i].total = target
                     bars[i].refresh()
-                e.advance_to(target, bars[i] if bars else None)
+                e.advance_to(target, bars[i] if bars else None, stop)
             parts = [e.read(target) for e in ensembles]
             chains, lps, acc = (np.stack(p) for p in zip(*parts))
             result = _evaluate(names, chains, lps, acc, derived_fn, gates, label)
@@ -553,5 +685,6 @@ def run_ensembles(
                 return result
             target = min(int(max_steps), target + math.ceil(0.5 * target))
     finally:
+        stop.__exit__()
         for b in bars:
             b.close()
