@@ -223,6 +223,23 @@ def cmd_study(args) -> int:
     return 0
 
 
+def cmd_discover(args) -> int:
+    from .discover import DEFAULT_T_CUTS, discover, parse_model, write_report
+    bundle = _load(args.file)
+    config = _config(bundle, args.config)
+    try:
+        start = parse_model(args.start)
+        result = discover(bundle, config.name, start, t_cuts=args.tcut or DEFAULT_T_CUTS, threshold=args.threshold,
+                          progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    json_path, html_path = write_report(result, args.output, seed=args.seed, inputs=[args.file])
+    print(f"effects added: {', '.join(result.effects_added) or 'none'} ({result.seconds:.1f} s); "
+          f"wrote {json_path} and {html_path}", file=sys.stderr)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="bayes-tfcrds",
                                 description="Transfer-function-corrected CRDS with honest uncertainty budgets. "
@@ -290,6 +307,19 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--quiet", action="store_true")
     sp.add_argument("--workers", type=int, default=2, help="local worker processes (default 2: both cores)")
     sp.set_defaults(func=cmd_study)
+
+    sp = common(sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
+                note=" (discovery is deterministic; the seed is recorded)")
+    sp.add_argument("file")
+    sp.add_argument("--config", help="configuration name, e.g. D2")
+    sp.add_argument("--start", default="crds+voigt",
+                    help="starting model: crds+voigt, or canonical effect names joined by ',' or '+', "
+                         "e.g. transfer_function,window_history,speed_dependence")
+    sp.add_argument("--tcut", type=_floats, default=None, help="t_cut values in s (default 2e-6,4e-6,6e-6)")
+    sp.add_argument("--threshold", type=float, default=10.0, help="Delta BIC an effect needs to be added")
+    sp.add_argument("--quiet", action="store_true")
+    sp.add_argument("-o", "--output", required=True, help="output folder (discovery.json, discovery.html)")
+    sp.set_defaults(func=cmd_discover)
 
     sp = common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"), seed=7)
     sp.add_argument("-o", "--output", default="demo-out", help="output folder")
