@@ -103,13 +103,19 @@ def _one_minus_sqrtpi_r_w(r):
 
 
 def _w_of_i_over_u(u):
-    """w(i/u) (dimensionless) for the second qSD root Z+ = 1/u, finite as u -> 0.
+    """The Maxwell-average term for the second qSD root Z+ = 1/u (dimensionless), finite as
+    u -> 0.
 
-    For small |u| the asymptotic series (u/sqrt(pi)) (1 - u^2/2 + 3u^4/4 - 15u^6/8) is exact
-    to < 1e-28 relative and gives w = 0 at u = 0, the Gamma2 = Delta2 = 0 limit; otherwise
-    wofz is used directly. The series needs iZ+ in the upper half plane, i.e. Re Z+ > 0,
-    which holds throughout the physical domain (Re Z+ = Re sqrt(X+Y) + Re 1/(2 kappa) with
-    both terms >= 0 when Gamma2 >= 0 and Re C0~ >= 0).
+    It is w(i/u) when Re Z+ >= 0, which holds throughout the physical domain (Gamma2 >= 0,
+    Re C0~ >= 0). For Gamma2 < 0 (Re Z+ < 0) it is -w(-i/u): the speed integral
+    int exp(-t^2)/(iZ - t) dt gives that branch, whereas wofz's analytic continuation adds
+    2 exp(Z+^2) ~ exp(1/kappa^2), which overflows. Both branches share the odd asymptotic
+    series (u/sqrt(pi)) (1 - u^2/2 + 3u^4/4 - 15u^6/8), used for small |u| (exact to
+    < 1e-28 relative, and w = 0 at the Gamma2 = Delta2 = 0 limit u = 0), so the profile is
+    infinitely differentiable in Gamma2 through 0. (Not analytic: w(i/u) has an essential
+    singularity at u = 0, so no continuation is unique; this one is the kinetic definition
+    up to the Maxwell weight ~ exp(-(Gamma0 + nu_VC)/|Gamma2|) of speed classes whose
+    width Gamma(v) + nu_VC would be negative, see ``qsdhcp``.)
     """
     out = np.empty_like(u)
     series = np.abs(u) < _WPLUS_SERIES_U
@@ -119,7 +125,9 @@ def _w_of_i_over_u(u):
         out[series] = us / _SQRT_PI * (1.0 + u2 * (-0.5 + u2 * (0.75 - 1.875 * u2)))
     rest = ~series
     if np.any(rest):
-        out[rest] = wofz(1j / u[rest])
+        z = 1j / u[rest]                    # i Z+; Im z = Re Z+
+        left = z.imag < 0
+        out[rest] = np.where(left, -wofz(np.where(left, -z, 0.0)), wofz(np.where(left, 0.0, z)))
     return out
 
 
@@ -161,6 +169,10 @@ def _speed_averaged(z0, kappa):
     if np.any(far):
         kf = kappa[far]
         r = s[far] / (2.0 * kf)
+        # Gamma2 < 0 (Re R < 0): the same Maxwell-integral branch as in _w_of_i_over_u,
+        # -w(-iR) for w(iR), i.e. the bracket of -R. (The exp(Z-^2) that wofz keeps in the
+        # near branch is below exp(-1e4) here.)
+        r = np.where(r.real < 0, -r, r)
         a[far] = (2.0 / kf) * _one_minus_sqrtpi_r_w(r)
     return a
 
@@ -178,6 +190,15 @@ def qsdhcp(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0
     Gamma(v) = Gamma0 + Gamma2 (v^2/v_p^2 - 3/2) (likewise Delta), v_p the most probable
     speed. Physical domain: GammaD > 0, nu_VC >= 0, 0 <= Gamma2 <= 2/3 Gamma0 (so that
     Gamma(v) >= 0 at every speed); there Re g >= 0 everywhere and the result is finite.
+
+    Continuation (for least-squares estimators, which must be free to step past Gamma2 = 0
+    and nu_VC = 0; priors keep the physical domain): g is analytic in nu_VC, so nu_VC < 0 is
+    the same formula. Gamma2 < 0 takes the speed integral's branch for the second root
+    (``_w_of_i_over_u``), smooth through Gamma2 = 0 and equal to the kinetic Maxwell average
+    up to the weight of the speed classes with Gamma(v) + nu_VC < 0, ~exp(-(Gamma0 + nu_VC)
+    /|Gamma2|) of the peak (2e-7 at Gamma2 = -0.1 Gamma0, nu_VC = 0.46 Gamma0). Gamma2 < 0
+    is defined for Delta2 = 0 and 4 ln2 |Gamma2| Re C0~ < GammaD^2, where it is finite at
+    every detuning; elsewhere it is NaN.
     """
     arrs = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (
         nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz,
@@ -189,8 +210,15 @@ def qsdhcp(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0
     c0t = (g0 - 1.5 * g2 + nvc) + 1j * (d0 - 1.5 * d2)      # Hz
     z0 = cte * (c0t - 1j * (nu - nu0))
     kappa = cte * (g2 + 1j * d2)
-    a = cte * _speed_averaged(z0, kappa)                     # A, 1/Hz
-    g = a / (np.pi * (1.0 - nvc * a))
+    # Gamma2 < 0 with Delta2 = 0: as nu varies, 1 + 4 kappa z0 runs parallel to the real axis
+    # at Re = 1 + 4 kappa cte Re C0~; at or below 0 sqrt(1 + 4 kappa z0) jumps on its branch
+    # cut and the continuation is undefined. With Delta2 != 0, w(iZ-) leaves the upper half
+    # plane far out and overflows: not covered. NaN in both cases, never a wrong number.
+    inside = ~((g2 < 0) & ((d2 != 0) | (1.0 + 4.0 * cte * cte * g2 * c0t.real <= 0)))
+    a = np.full_like(z0, np.nan)
+    a[inside] = cte[inside] * _speed_averaged(z0[inside], kappa[inside])      # A, 1/Hz
+    with np.errstate(invalid="ignore"):
+        g = a / (np.pi * (1.0 - nvc * a))
     return g.reshape(shape)
 
 

@@ -30,7 +30,15 @@ DEFAULT_SHAPE_FREE = {
     "rautian": ("gamma0_hz", "nu_vc_hz"),
     "qsdhcp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz"),
 }
-NONNEGATIVE = {"gamma0_hz", "gamma2_hz", "nu_vc_hz", "line_area"}
+NONNEGATIVE = {"gamma0_hz", "line_area"}
+# Gamma2 and nu_VC are physically >= 0 but the least-squares estimate is not bounded there:
+# where the data barely resolve them (CMDS at 1e-3 noise: sd 0.26 Gamma0 and 0.54 Gamma0,
+# correlation -0.99) a bounded fit ends on a bound in half the draws, and holding one at 0
+# moves A along their correlation (+0.40 sd when Gamma2 is held, -0.29 sd for nu_VC): a
+# +0.085 sd bias in A over 1000 draws (benchmarks/pulls_spectrum.py). The profile's smooth
+# continuation past 0 (lineshape.qsdhcp) keeps the estimator unbiased; ``unphysical`` names
+# the estimates that ended outside the physical domain, and the samplers keep its bounds.
+PHYSICAL_NONNEGATIVE = ("gamma2_hz", "nu_vc_hz")
 
 
 def absorption_from_tau(tau_s, tau_u_s=None):
@@ -68,7 +76,9 @@ class LineFit:
     ``line_area`` is A in Hz/m; :meth:`line_area_cm2` gives it in cm^-2. When the data carried
     no trustworthy uncertainties (``scaled``), the covariance is scaled by chi2/dof. Parameters
     that ended on their lower bound (``at_bound``) have zero variance: they were not free at
-    the solution.
+    the solution. ``unphysical`` names shape estimates below zero (Gamma2, nu_VC): estimates on
+    the profile's continuation, not measured negative rates; one many standard uncertainties
+    below zero points to a wrong profile rather than to noise.
     """
 
     profile: str
@@ -84,6 +94,7 @@ class LineFit:
     residuals: tuple = field(repr=False)
     scaled: bool = False
     at_bound: tuple = ()
+    unphysical: tuple = ()
 
     def value(self, name):
         return float(self.values[self.names.index(name)])
@@ -262,7 +273,8 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
     return LineFit(profile=profile_name, names=names, values=theta, cov=cov, chi2=chi2, dof=dof,
                    nu_ref_hz=float(nu_ref_hz), doppler_hwhm_hz=float(doppler_hwhm_hz), fixed=fixed,
                    spectra=spectra, residuals=tuple(np.split(r * u, split)), scaled=scale_by_chi2,
-                   at_bound=at_bound)
+                   at_bound=at_bound,
+                   unphysical=tuple(n for n, v in zip(names, theta) if n in PHYSICAL_NONNEGATIVE and v < 0))
 
 
 def ratio_with_uncertainty(a, u_a, b, u_b, corr: float = 0.0):

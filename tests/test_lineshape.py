@@ -611,3 +611,87 @@ def test_broadcasting_and_shapes():
         np.testing.assert_array_equal(
             g[:, j], qsdhcp(nu[:, 0], NU0, GD, g0[j], 0.1 * g0[j], 0.0, 0.0, 0.2 * g0[j]))
     assert np.ndim(qsdhcp(NU0, NU0, GD, GD)) == 0
+
+
+# -------------------------------------------- continuation past Gamma2 = 0 and nu_VC = 0
+# Least-squares fits step past the physical bounds (spectrum.fit_line): the profile there is
+# the continuation documented in qsdhcp. CO-like Doppler-dominated case, Gamma0 = 0.045 GammaD.
+G0C = 0.045 * GD
+
+
+def _negative_width_weight(r2, rvc):
+    """Maxwell weight P(x > x*) = erfc(x*) + (2/sqrt(pi)) x* exp(-x*^2) of the speed classes
+    whose width Gamma(v) + nu_VC = Gamma0 (1 + rvc + r2 (x^2 - 3/2)) is negative (r2 < 0)."""
+    from scipy.special import erfc
+    if r2 >= 0:
+        return 0.0
+    xs = np.sqrt(1.5 + (1.0 + rvc) / -r2)
+    return float(erfc(xs) + 2.0 / np.sqrt(np.pi) * xs * np.exp(-xs * xs))
+
+
+@pytest.mark.parametrize("r2,rvc", [(-0.05, 0.46), (0.1, -0.3), (-0.05, -0.3)])
+def test_continuation_is_the_kinetic_average_near_the_bounds(r2, rvc):
+    # nu_VC < 0 is the same analytic formula; Gamma2 < 0 differs from the Maxwell average
+    # only through the speed classes with negative width, whose share of the peak is below
+    # their Maxwell weight (5e-14, 0 and 8.5e-7 here). The quadrature is good to ~1e-12,
+    # so 1e-9 of the peak plus that weight, as for the physical domain above.
+    det = np.concatenate([np.linspace(-8, 8, 17), [-40.0, 40.0]]) * GD
+    args = (GD, G0C, r2 * G0C, 0.0, 0.0, rvc * G0C)
+    ours = qsdhcp(NU0 + det, NU0, *args)
+    ref = _ref_speed_average(det, *args)
+    assert np.all(np.isfinite(ours))
+    tol = 1e-9 + _negative_width_weight(r2, rvc)
+    assert np.max(np.abs(ours - ref)) < tol * np.abs(ours).max()
+
+
+def test_continuation_departs_from_kinetic_average_where_widths_turn_negative():
+    # The bound above is not vacuous: at Gamma2 = -0.3 Gamma0 the classes beyond x^2 = 6.4
+    # (weight 5e-3) have negative widths and the two differ by ~4e-3 of the peak. There the
+    # continuation is an estimator's smooth extension, not a physical profile.
+    det = np.linspace(-2, 2, 9) * GD
+    args = (GD, G0C, -0.3 * G0C, 0.0, 0.0, 0.46 * G0C)
+    ours = qsdhcp(NU0 + det, NU0, *args)
+    ref = _ref_speed_average(det, *args)
+    diff = np.max(np.abs(ours - ref)) / np.abs(ours).max()
+    assert 1e-4 < diff < _negative_width_weight(-0.3, 0.46)
+
+
+def test_continuation_is_smooth_through_gamma2_zero():
+    # A kink at Gamma2 = 0 (e.g. the analytic continuation of w(iZ+), which overflows, or a
+    # clipped profile) would make the centred second difference O(h); a C^2 profile makes
+    # it O(h^2): the ratio between h = 1e-2 and 1e-3 Gamma0 must be 100 (+-1 %, rounding
+    # ~1e-15 / 6e-9 and the O(h^4) term are far below that).
+    det = np.linspace(-45, 45, 99) * GD
+    args = dict(nu0_hz=NU0, doppler_hwhm_hz=GD, gamma0_hz=G0C, nu_vc_hz=0.46 * G0C)
+
+    def second(h):
+        gp, g0, gm = (qsdhcp(NU0 + det, gamma2_hz=x * G0C, **args) for x in (h, 0.0, -h))
+        return np.max(np.abs(gp + gm - 2 * g0))
+
+    assert second(1e-2) / second(1e-3) == pytest.approx(100.0, rel=1e-2)
+
+
+def test_continuation_branch_switch_is_seamless(monkeypatch):
+    # As test_branch_switch_is_seamless, for Gamma2 < 0 (the far branch takes the same
+    # integral branch as the near one); detunings to 1e15 widths reach |4 kappa z0| > 1e12.
+    d = np.logspace(0, 15, 300) * G0C
+    args = (GD, G0C, -0.3 * G0C, 0.0, 0.0, 0.5 * G0C)
+    monkeypatch.setattr(ls, "_XY_RATIO_SWITCH", 1e8)
+    low = qsdhcp(NU0 + d, NU0, *args)
+    monkeypatch.setattr(ls, "_XY_RATIO_SWITCH", 1e12)
+    high = qsdhcp(NU0 + d, NU0, *args)
+    assert np.all(np.isfinite(low))
+    np.testing.assert_allclose(low, high, rtol=3e-8)
+
+
+def test_continuation_is_nan_off_its_domain():
+    # Gamma2 < 0 with 4 ln2 |Gamma2| Re C0~ >= GammaD^2 puts 1 + 4 kappa z0 on the square
+    # root's branch cut: the profile is undefined there, and says so with NaN.
+    g0 = 1e3 * GD
+    g = qsdhcp(NU0 + np.array([0.0, 1e9]), NU0, GD, g0, -0.3 * g0, 0.0, 0.0, 0.5 * g0)
+    assert np.all(np.isnan(g))
+    # Inside it the profile is finite at every detuning. A speed-dependent shift with
+    # Gamma2 < 0 is not covered (w(iZ-) overflows far out): NaN rather than a wrong number.
+    d = np.concatenate([-np.logspace(-2, 8, 50), np.logspace(-2, 8, 50)]) * GD
+    assert np.all(np.isfinite(qsdhcp(NU0 + d, NU0, GD, G0C, -0.3 * G0C, 0.1 * G0C, 0.0, 0.5 * G0C)))
+    assert np.all(np.isnan(qsdhcp(NU0 + d, NU0, GD, G0C, -0.3 * G0C, 0.1 * G0C, 0.2 * G0C, 0.5 * G0C)))
