@@ -33,7 +33,7 @@ import numpy as np
 from .constants import TORR, hz_to_wavenumber_cm
 
 __all__ = [
-    "FORMAT_NAME", "FORMAT_VERSION", "CLIP_RUN",
+    "FORMAT_NAME", "FORMAT_VERSION", "CLIP_RUN", "SAT_WINDOW", "SAT_FLATNESS",
     "Sample", "Cavity", "TransferFunctionData", "RingdownData", "CmdsData", "Config", "Bundle",
     "Violation", "BundleError",
     "load_bundle", "validate_file", "summarize", "save_bundle", "load_truth", "main_validate",
@@ -44,6 +44,10 @@ FORMAT_VERSION = 1
 #: A transient is flagged as clipped when its maximum (or minimum) value is repeated
 #: exactly in at least this many consecutive samples, the run reaching t > 0.
 CLIP_RUN = 3
+#: A transient is flagged as saturated when a window of SAT_WINDOW consecutive samples at its
+#: top, ending after extinction, scatters less than SAT_FLATNESS times the record's noise.
+SAT_WINDOW = 32
+SAT_FLATNESS = 0.35
 
 _HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
 
@@ -205,9 +209,11 @@ class RingdownData(_Record):
 
     @cached_property
     def clipped(self) -> np.ndarray:
-        """Per-transient flag (m,) bool: the transient looks clipped by the digitizer.
+        """Per-transient flag (m,) bool: the top of the transient is cut off, so it is not fitted.
 
-        The bundle has no ADC range, so clipping is read from the data: a transient is
+        Either clipped at the digitizer's rails or saturated below them (``saturated``; the
+        detector or amplifier limits). Rails: the bundle has no ADC range, so clipping is read
+        from the data: a transient is
         flagged when its maximum (or its minimum) value is taken EXACTLY by at least
         ``CLIP_RUN`` = 3 consecutive samples and that run reaches t > 0. An average of
         acquisitions that all sat on the same rail is exactly the rail value, whereas
@@ -217,9 +223,83 @@ class RingdownData(_Record):
         enters a fit, which uses t >= t_cut >= 0 only. A noiseless record long enough
         for the exponential to round to its baseline (about 37 tau) would be flagged.
         """
-        flags = _clip_flags(self.signal_v, self.time_s)
+        flags = self._rails | self.saturated
         flags.setflags(write=False)
         return flags
+
+    @cached_property
+    def _rails(self) -> np.ndarray:
+        return _clip_flags(self.signal_v, self.time_s)
+
+    @cached_property
+    def saturation(self) -> "Saturation":
+        """Flat tops below the rails, per transient (see :class:`Saturation`)."""
+        return _saturation(self.signal_v, self.time_s)
+
+    @property
+    def saturated(self) -> np.ndarray:
+        """Per-transient flag (m,) bool: a flat top flatter than the noise allows, reaching t > 0.
+
+        A saturated detector or amplifier pins its output at a level inside the ADC range: its
+        own noise is cut off with the signal, so the top is flatter than the rest of the record
+        while the averaged values, unlike rail clipping, need not repeat exactly. Flagged when a
+        window of ``SAT_WINDOW`` = 32 samples at the transient's top (mean within 5 sigma of the
+        maximum) and ending at t > 0 has a standard deviation below ``SAT_FLATNESS`` = 0.35 sigma,
+        sigma being the noise of the record's second half (from second differences, so a smooth
+        decay does not count). For white noise a window that flat has probability 7e-10 (chi-square,
+        31 degrees of freedom), and only windows at the top after extinction count; a
+        record without noise (sigma = 0) cannot be judged and is never flagged. Transients
+        clipped at the rails (exact repeats) are reported as clipped, not here.
+        """
+        return self.saturation.flags & ~self._rails
+
+
+@dataclass(frozen=True, eq=False)
+class Saturation:
+    """Flat-top detection per transient: ``flags`` (m,) bool; ``end_s`` (m,) time (s) of the last
+    flat sample after extinction (NaN if none); ``scatter_v`` (m,) standard deviation of the
+    flattest window at the top (V); ``noise_v`` (m,) the record's noise scale (V)."""
+
+    flags: np.ndarray
+    end_s: np.ndarray
+    scatter_v: np.ndarray
+    noise_v: np.ndarray
+
+
+def _noise_scale(signal: np.ndarray) -> np.ndarray:
+    """Robust white-noise sigma (V) per row from second differences of the record's second half:
+    a decay's curvature per sample is negligible there and a flat top early on is excluded."""
+    tail = signal[:, signal.shape[1] // 2:]
+    d2 = np.diff(tail, n=2, axis=1)
+    mad = np.median(np.abs(d2 - np.median(d2, axis=1, keepdims=True)), axis=1)
+    return 1.482602218505602 * mad / np.sqrt(6.0)   # var(second difference) = 6 sigma^2
+
+
+def _saturation(signal: np.ndarray, t: np.ndarray) -> Saturation:
+    m, k = signal.shape
+    w = SAT_WINDOW
+    nan = np.full(m, np.nan)
+    if m == 0 or k < 2 * w:
+        empty = np.zeros(m, dtype=bool)
+        return Saturation(empty, nan, nan.copy(), nan.copy())
+    sigma = _noise_scale(signal)
+    y = signal - signal.mean(axis=1, keepdims=True)   # centred: the running sums stay accurate
+    zero = np.zeros((m, 1))
+    c1 = np.concatenate([zero, np.cumsum(y, axis=1)], axis=1)
+    c2 = np.concatenate([zero, np.cumsum(y * y, axis=1)], axis=1)
+    mean = (c1[:, w:] - c1[:, :-w]) / w
+    sd = np.sqrt(np.maximum((c2[:, w:] - c2[:, :-w]) / w - mean**2, 0.0) * (w / (w - 1)))
+    ends = t[w - 1:]                                   # time of each window's last sample
+    at_top = mean >= (y.max(axis=1) - 5.0 * sigma)[:, None]
+    candidates = at_top & (ends > 0)[None, :]
+    flat = candidates & (sd < SAT_FLATNESS * sigma[:, None]) & (sigma > 0)[:, None]
+    flags = flat.any(axis=1)
+    last = flat.shape[1] - 1 - np.argmax(flat[:, ::-1], axis=1)
+    end_s = np.where(flags, ends[last], np.nan)
+    scatter = np.where(candidates.any(axis=1), np.min(np.where(candidates, sd, np.inf), axis=1), np.nan)
+    for a in (flags, end_s, scatter, sigma):
+        a.setflags(write=False)
+    return Saturation(flags, end_s, scatter, sigma)
 
 
 def _clip_flags(signal: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -722,7 +802,14 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     if len(r.errors) > n0:
         return None
     data = RingdownData(nu, signal, dt, t0, n_avg, noise)
-    for i in np.flatnonzero(data.clipped):
+    sat = data.saturation
+    for i in np.flatnonzero(data.saturated):
+        r.warn(_join(p, "signal_v"),
+               f"transient {i} (nu_hz = {data.nu_hz[i]:.12g}) looks saturated: its top is flat "
+               f"(scatter {sat.scatter_v[i]:.2g} V where the record's noise is "
+               f"{sat.noise_v[i]:.2g} V) until t = {sat.end_s[i]:.3g} s after extinction, below "
+               "the digitizer rails (detector or amplifier saturation?); not fitted")
+    for i in np.flatnonzero(data.clipped & ~data.saturated):
         r.warn(_join(p, "signal_v"),
                f"transient {i} (nu_hz = {data.nu_hz[i]:.12g}) looks clipped: a flat run of "
                f">= {CLIP_RUN} identical samples at its maximum or minimum reaching t > 0 "
@@ -738,7 +825,7 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
     r.extras(g, p, _TF_ITEMS)
     f_hz = r.array(g, p, "f_hz", rule=_POSITIVE)
     b12 = r.array(g, p, "b12_v", rule=_NONNEG)
-    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_NONNEG)
+    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_POSITIVE)   # a weight: 0 is infinite
     i1 = r.array(g, p, "i1_v", ndims=(0, 1), rule=_POSITIVE)
     i2 = r.array(g, p, "i2_v", ndims=(0, 1), rule=_POSITIVE)
     n = None
@@ -770,7 +857,7 @@ def _read_cmds(parent, cp: str, r: _Reader) -> CmdsData | None:
     shift = r.array(g, p, "shift_hz")
     shift_u = r.array(g, p, "shift_u_hz", rule=_POSITIVE)
     width = r.array(g, p, "width_hz", required=False, rule=_POSITIVE)
-    width_u = r.array(g, p, "width_u_hz", required=False, rule=_NONNEG)
+    width_u = r.array(g, p, "width_u_hz", required=False, rule=_POSITIVE)  # a weight, like shift_u
     n = None if nu is None else nu.shape[0]
     for name, values in (("shift_hz", shift), ("shift_u_hz", shift_u), ("width_hz", width),
                          ("width_u_hz", width_u)):
@@ -892,7 +979,12 @@ def summarize(bundle: Bundle) -> str:
                    + "; noise_v: " + ("absent" if rd.noise_v is None else
                                       "per sample (m, k)" if rd.noise_v.ndim == 2
                                       else "per transient (m,)"))
-        clipped = np.flatnonzero(rd.clipped)
+        saturated = np.flatnonzero(rd.saturated)
+        if saturated.size:
+            listed = ", ".join(f"#{i} (nu = {rd.nu_hz[i]:.12g} Hz, flat until "
+                               f"{rd.saturation.end_s[i]:.3g} s)" for i in saturated)
+            out.append(f"      SATURATED transients ({saturated.size}): {listed}")
+        clipped = np.flatnonzero(rd.clipped & ~rd.saturated)
         if clipped.size:
             listed = ", ".join(f"#{i} (nu = {rd.nu_hz[i]:.12g} Hz)" for i in clipped)
             out.append(f"      CLIPPED transients ({clipped.size}): {listed}")

@@ -84,9 +84,15 @@ def cmd_fit(args) -> int:
         w.writerow([f"{nu:.3f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status])
     atomic_write_text(Path(args.output), buf.getvalue())
     n_clip = int(fits.clipped.sum())
+    n_sat = int(np.sum(config.ringdowns.saturated))
+    n_short = sum(row[-1] == "record-short" for row in fits.rows())
     print(f"wrote {args.output}: {fits.tau_s.size} fits ({args.method}"
           f"{', ' + args.window if args.method == 'tf-crds' else ''})"
-          + (f"; {n_clip} clipped transients not fitted" if n_clip else ""), file=sys.stderr)
+          + (f"; {n_clip} clipped transients not fitted (status clipped"
+             + (f"; {n_sat} of them saturated below the digitizer rails" if n_sat else "")
+             + "; bayes-tfcrds validate lists them)" if n_clip else "")
+          + (f"; warning: {n_short} fits have less than two decay times of record after t_cut "
+             "(status record-short)" if n_short else ""), file=sys.stderr)
     return 0
 
 
@@ -126,9 +132,17 @@ def cmd_linefit(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     atomic_write_text(Path(args.output), json.dumps(result, indent=2) + "\n")
+    if result["clipped_points"]:
+        print(f"warning: {result['clipped_points']} clipped or saturated transients were left out of the "
+              "spectrum (bayes-tfcrds validate lists them)", file=sys.stderr)
+    if result["record_short_points"]:
+        print(f"warning: {result['record_short_points']} decay times come from less than two decay times of "
+              f"record after t_cut = {args.tcut[0]:g} s (offset and tau nearly degenerate)", file=sys.stderr)
     la, ra = result["line_area"], result["reference_area"]
-    print(f"A = {la['value']:.6e} +/- {la['u']:.2e} {la['unit']}; A_ref = {ra['value']:.6e} +/- {ra['u']:.2e}; "
-          f"A/A_ref = {result['ratio']['value']:.5f} +/- {result['ratio']['u']:.5f}", file=sys.stderr)
+    print(f"A = {la['value']:.6e} +/- {la['u']:.2e} {la['unit']}; "
+          + ("no CMDS reference in this configuration" if ra is None else
+             f"A_ref = {ra['value']:.6e} +/- {ra['u']:.2e}; "
+             f"A/A_ref = {result['ratio']['value']:.5f} +/- {result['ratio']['u']:.5f}"), file=sys.stderr)
     return 0
 
 

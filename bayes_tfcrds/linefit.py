@@ -43,6 +43,19 @@ def check_overlap(config):
             f"({inside} CMDS points inside it; at least 8 needed)")
 
 
+def check_t_cuts(config, t_cuts_s):
+    """Refuse truncation times (s, from laser extinction) outside the ring-down record before any
+    work is done: a fit needs t_cut >= 0 and some samples after it (8, as ringdown.fit_transients)."""
+    t = config.ringdowns.time_s
+    last, dt = float(t[-1]), float(t[1] - t[0]) if t.size > 1 else 0.0
+    for tc in np.atleast_1d(np.asarray(t_cuts_s, float)):
+        if not np.isfinite(tc) or tc < 0:
+            raise LineFitError(f"t_cut = {tc:g} s: t_cut is counted from laser extinction and must be >= 0 s")
+        if tc >= last - 8 * dt:
+            raise LineFitError(f"t_cut = {tc:g} s is beyond the record of /configs/{config.name}/ringdowns "
+                               f"(last sample at {last:g} s; a fit needs samples after t_cut)")
+
+
 def fit_reference(bundle, config, profile_name: str = "qsdhcp"):
     """Profile fit to the configuration's CMDS mode shifts (the reference A_ref), or None."""
     if config.cmds is None:
@@ -54,6 +67,8 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
                  profile_name: str = "qsdhcp", calibration=None) -> dict:
     """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare."""
     gd = doppler_of(bundle.sample)
+    check_t_cuts(config, [t_cut_s])
+    check_overlap(config)
     try:
         if method == "tf-crds" and calibration is None:
             calibration = calibrate(config, window=window)
@@ -61,7 +76,6 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
     except AnalysisError as exc:
         raise LineFitError(str(exc)) from exc
     spec = crds_spectrum(fits.nu_hz, fits.tau_s[:, 0], fits.tau_u_s[:, 0])
-    check_overlap(config)
     if spec.nu_hz.size < 8:
         raise LineFitError(f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}")
     lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz)
@@ -81,8 +95,12 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
                        for i, (name, v) in enumerate(zip(lf.names, lf.values))},
         "correlation": {"names": list(lf.names), "matrix": np.round(lf.correlation, 6).tolist()},
         "chi2_red": float(lf.chi2_red),
+        # shape estimates below 0 (Gamma2, nu_VC): fitted on the profile's continuation, not negative rates
+        "unphysical_shape": list(lf.unphysical),
         "n_points": int(spec.nu_hz.size),
         "clipped_points": int(np.sum(fits.clipped)),
+        # decays with less than two decay times of record after t_cut (offset and tau nearly degenerate)
+        "record_short_points": int(sum(fits.status(i, 0) == "record-short" for i in range(fits.nu_hz.size))),
     }
     if calibration is not None:
         p = calibration.params
@@ -97,4 +115,5 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
         r, u = ratio_with_uncertainty(lf.line_area, lf.line_area_u, ref.line_area, ref.line_area_u)
         out["ratio"] = {"value": float(r), "u": float(u)}
         out["reference_chi2_red"] = float(ref.chi2_red)
+        out["reference_unphysical_shape"] = list(ref.unphysical)
     return out

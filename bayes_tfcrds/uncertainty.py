@@ -33,7 +33,7 @@ from .budget import Budget, Component, normalized_error
 from .constants import C, intensity_to_cm_per_molecule, line_area_to_cm2, number_density
 from .linedata import load_line
 from .linalg import central_hessian
-from .linefit import doppler_of
+from .linefit import check_overlap, check_t_cuts, doppler_of
 from .posterior import BeatNotePosterior, LinePosterior
 from .propagate import _model_of, line_gain, tau_influence, tau_sensitivities
 from .refine import refine_transfer_function
@@ -181,6 +181,9 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
                outdir: str | Path | None = None, progress: bool = False) -> BudgetResult:
     """Posteriors, propagation and the GUM budget for one configuration (see module doc)."""
     rng = np.random.default_rng(0) if rng is None else rng
+    # refuse what cannot work before minutes of sampling: t_cut outside the record, CMDS elsewhere
+    check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
+    check_overlap(config)
     streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
     backend = None
     if outdir is not None:
