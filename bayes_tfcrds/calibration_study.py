@@ -252,7 +252,9 @@ def run_campaign(settings: CoverageSettings, index: int) -> dict:
     try:
         rec.update(analyse_campaign(bundle, truth, settings.options, g_fit))
     except Exception as exc:          # a campaign the pipeline cannot analyse is counted, never dropped
-        rec.update({"status": f"error: {type(exc).__name__}: {exc}"})
+        import traceback
+        where = [f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in traceback.extract_tb(exc.__traceback__)[-4:]]
+        rec.update({"status": f"error: {type(exc).__name__}: {exc}", "trace": where})
     return rec
 
 
@@ -329,8 +331,36 @@ def summarise(records, quantity: str, u_scale: float = 1.0, bins: int = 10) -> d
     chi2 = float(np.sum((counts - expected) ** 2 / expected)) if n else float("nan")
     out.update({"rank_counts": counts.tolist(), "rank_chi2": chi2, "rank_dof": bins - 1,
                 "rank_p": float(stats.chi2.sf(chi2, bins - 1)),
-                "mean_pull": float(np.mean(pulls)), "sd_pull": float(np.std(pulls, ddof=1)) if n > 1 else float("nan")})
+                "mean_pull": float(np.mean(pulls)), "sd_pull": float(np.std(pulls, ddof=1)) if n > 1 else float("nan"),
+                "median_pull": float(np.median(pulls)) if n else float("nan"), "robust_sd_pull": robust_sd(pulls)})
     return out
+
+
+def beat_note_mode(settings: CoverageSettings, index: int) -> dict:
+    """Re-simulate campaign ``index`` and refit its beat note: A_r as fitted, and the fit started at the truth.
+
+    |H| alone cannot tell A_r from its mirror -A_r/(1 + 2 A_r): both give the same gain above f_c
+    and nearly the same |H| near it, so a fit may land on the mirror; the ring-downs (which see
+    the phase) then disagree with it. This says whether that happened to a campaign.
+    """
+    from .analysis import BEAT_FREE, beat_note_fit
+    from .transfer_function import fit_beat_note
+    ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
+    g_draw, g_sim, _ = (np.random.default_rng(c) for c in ss.spawn(3))
+    draw = draw_truth(g_draw, settings.presets, settings.dist)
+    bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
+    cfg = next(iter(bundle.configs.values()))
+    fit = beat_note_fit(cfg, free=BEAT_FREE)
+    at_truth = fit_beat_note(cfg.transfer_function, variant=fit.params.variant, free=BEAT_FREE, start=draw.tf)
+    return {"a_r_true": draw.tf.a_r, "a_r_fit": fit.params.a_r, "chi2_fit": float(fit.chi2),
+            "a_r_from_truth": at_truth.params.a_r, "chi2_from_truth": float(at_truth.chi2),
+            "mirror": bool(np.sign(fit.params.a_r) != np.sign(draw.tf.a_r))}
+
+
+def robust_sd(x) -> float:
+    """1.4826 x the median absolute deviation: the sd for Gaussian data, blind to a few gross outliers."""
+    x = np.asarray(x, float)
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 
 def check(summary: dict, k_sigma: float = 3.0, alpha: float = 0.01) -> dict:
@@ -370,10 +400,10 @@ def _rank_figure(rep, sums, n, title):
         s = sums[k]
         b = s["bins"]
         lo, hi = stats.binom.ppf([0.005, 0.995], s["n"], 1 / b)
-        ax.axhspan(lo, hi, color="0.85", label="99 % band, uniform")
-        ax.axhline(s["n"] / b, color="0.4", lw=0.8)
-        ax.bar((np.arange(b) + 0.5) / b, s["rank_counts"], width=1 / b, color="tab:blue", alpha=0.75,
+        ax.bar((np.arange(b) + 0.5) / b, s["rank_counts"], width=1 / b, color="tab:blue", alpha=0.55,
                edgecolor="k", lw=0.4)
+        ax.axhspan(lo, hi, color="0.5", alpha=0.3, zorder=3, label="99 % band, uniform")
+        ax.axhline(s["n"] / b, color="0.2", lw=0.8, zorder=3)
         ax.set_title(f"{LABELS[k]}\nchi2 p = {s['rank_p']:.2f}", fontsize=8)
         ax.set_xlabel("normalised rank of truth", fontsize=8)
         ax.set_xlim(0, 1)
@@ -440,11 +470,14 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
     rows = []
     for k, s in sums.items():
         rows.append([LABELS[k], s["n"], f"{100 * s['coverage_68']:.1f} +/- {100 * s['se_68']:.1f}",
-                     f"{100 * s['coverage_95']:.1f} +/- {100 * s['se_95']:.1f}", f"{s['mean_pull']:+.3f}",
-                     f"{s['sd_pull']:.3f}", f"{s['rank_chi2']:.1f} ({s['rank_dof']})", f"{s['rank_p']:.3f}"])
+                     f"{100 * s['coverage_95']:.1f} +/- {100 * s['se_95']:.1f}", f"{s['mean_pull']:+.3g}",
+                     f"{s['sd_pull']:.3g}", f"{s['median_pull']:+.3f}", f"{s['robust_sd_pull']:.3f}",
+                     f"{s['rank_chi2']:.1f} ({s['rank_dof']})", f"{s['rank_p']:.3f}"])
     rep.add_table(["quantity", "campaigns", "68 % coverage (%)", "95 % coverage (%)", "mean pull", "sd of pulls",
-                   "rank chi2 (dof)", "p"], rows,
-                  caption="Coverage +/- binomial standard error sqrt(c(1-c)/n). Pull = (truth - estimate)/u. The first "
+                   "median pull", "robust sd of pulls (1.4826 MAD)", "rank chi2 (dof)", "p"], rows,
+                  caption="Coverage +/- binomial standard error sqrt(c(1-c)/n). Pull = (truth - estimate)/u; the "
+                          "mean and sd are dominated by any gross outlier (listed below), the median and MAD are not. "
+                          "The first "
                           "four rows use the posterior (ring-down noise and H, the budget's statistical u); the u_c "
                           "rows use the full GUM budget, whose Type B rows (t_cut choice, qSDHCP vs SDVP) describe "
                           "choices the simulation does not vary (its truth is the fitted qSDHCP), so they cover more "
@@ -475,9 +508,44 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
                                f"{100 * s[f'coverage_{key}']:.1f} % (3 sd = {300 * s[f'se_nominal_{key}']:.1f} %)")
         rep.add_diagnostic(f"{LABELS[k]}: ranks uniform (chi-square, p > 0.01)", checks[k]["ranks_uniform"],
                            f"chi2 = {sums[k]['rank_chi2']:.1f}, {sums[k]['rank_dof']} dof, p = {sums[k]['rank_p']:.3f}")
+    if bad:
+        rep.add_heading("Campaigns the pipeline could not analyse")
+        rep.add_text("They are left out of the coverage above and counted here; each can be rerun alone with "
+                     "calibration_study.run_campaign(settings, index).")
+        rep.add_table(["campaign", "base chain", "status", "where"],
+                      [[r["index"], r["draw"]["preset"], r["status"], " <- ".join(reversed(r.get("trace", [])))]
+                       for r in bad])
+    far = [(r["index"], k, r["quantities"][k]["pull"]) for r in ok for k in main_keys
+           if abs(r["quantities"][k]["pull"]) > 4]
+    if far:
+        rep.add_heading("Pulls beyond 4")
+        rep.add_text(f"Expected about {n * len(main_keys) * 2 * stats.norm.sf(4):.2f} for Gaussian pulls.")
+        rep.add_table(["campaign", "quantity", "pull"], [[i, LABELS[k], f"{z:+.3g}"] for i, k, z in far])
+    suspects = sorted({r["index"] for r in bad} | {i for i, _, _ in far})
+    modes = {i: beat_note_mode(settings, i) for i in suspects}
+    if modes:
+        rep.add_heading("Beat-note check of the failed and far-off campaigns")
+        rep.add_text("Each is simulated again and its beat note refitted. |H| alone cannot tell A_r from its mirror "
+                     "-A_r/(1 + 2 A_r) (the same gain above f_c, nearly the same |H| near it); when the fit lands on "
+                     "the mirror, the ring-downs disagree with H and the refinement either fails or moves f_c far "
+                     "to compensate, with a small stated u.")
+        rep.add_table(["campaign", "A_r true", "A_r beat fit", "chi2 beat fit", "A_r fit started at truth",
+                       "chi2 started at truth", "mirror solution"],
+                      [[i, f"{m['a_r_true']:.3f}", f"{m['a_r_fit']:.3f}", f"{m['chi2_fit']:.2f}",
+                        f"{m['a_r_from_truth']:.3f}", f"{m['chi2_from_truth']:.2f}", "yes" if m["mirror"] else "no"]
+                       for i, m in modes.items()])
+        n_mirror = sum(m["mirror"] for m in modes.values())
+        rep.add_diagnostic("no campaign's beat-note fit on the mirror A_r solution", n_mirror == 0,
+                           f"{n_mirror} of {len(recs)} campaigns")
+    n_all = len(recs)
+    a95_all = sum(r["quantities"]["A"]["in95"] for r in ok) / n_all
+    a68_all = sum(r["quantities"]["A"]["in68"] for r in ok) / n_all
+    rep.add_summary("A: coverage counting failed campaigns as misses",
+                    f"68 %: {100 * a68_all:.1f} %, 95 %: {100 * a95_all:.1f} %", f"{n_all} campaigns, {len(bad)} failed")
     numbers = {"posterior": post, "n_campaigns": study.n_campaigns, "n_ok": n, "failed": [r["status"] for r in bad],
                "truth_distribution": asdict(settings.dist), "summaries": sums, "checks": checks,
-               "settings_fingerprint": settings.fingerprint()}
+               "settings_fingerprint": settings.fingerprint(), "beat_note_modes": modes,
+               "a_coverage_failures_as_misses": {"68": a68_all, "95": a95_all}}
     # the same campaigns with the MCMC posterior (same draws, data and analysis seeds)
     m = min(study.mcmc_campaigns, study.n_campaigns)
     if m and post != "mcmc":
