@@ -164,12 +164,23 @@ def _line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progres
     for i, n in enumerate(lsq.names):           # start strictly inside the prior
         if n in ("gamma2_hz", "nu_vc_hz") and x0[i] <= sd[i]:
             x0[i] = sd[i]
+    # the prior also caps Gamma2 at 2/3 Gamma0 (no negative width in any speed class); the
+    # unbounded least-squares estimate and its sd can lie beyond it
+    i2 = lsq.names.index("gamma2_hz") if "gamma2_hz" in lsq.names else None
+    cap = (2.0 / 3.0) * abs(x0[lsq.names.index("gamma0_hz")]) if i2 is not None and "gamma0_hz" in lsq.names \
+        else np.inf
+    if i2 is not None and x0[i2] >= cap:
+        x0[i2] = 0.5 * cap
 
     def p0(r, n):
         x = x0 + 0.5 * sd * r.standard_normal((n, x0.size))
         for i, name in enumerate(lsq.names):
             if name in ("gamma2_hz", "nu_vc_hz", "line_area", "gamma0_hz"):
                 x[:, i] = np.abs(x[:, i])
+        if np.isfinite(cap):                   # each walker's own Gamma0 sets its cap
+            cap_w = (2.0 / 3.0) * x[:, lsq.names.index("gamma0_hz")]
+            over = x[:, i2] >= cap_w
+            x[over, i2] = cap_w[over] * r.uniform(0.1, 0.9, int(over.sum()))
         return x
 
     return run_ensembles(post, p0, lsq.names, rng, n_ensembles=options.n_ensembles,
