@@ -244,7 +244,7 @@ class RingdownData(_Record):
         own noise is cut off with the signal, so the top is flatter than the rest of the record
         while the averaged values, unlike rail clipping, need not repeat exactly. Flagged when a
         window of ``SAT_WINDOW`` = 32 samples at the transient's top (mean within 5 sigma of the
-        maximum) and ending at t > 0 has a standard deviation below ``SAT_FLATNESS`` = 0.35 sigma,
+        maximum; or bottom, for an inverting chain) and ending at t > 0 has a standard deviation below ``SAT_FLATNESS`` = 0.35 sigma,
         sigma being the noise of the record's second half (from second differences, so a smooth
         decay does not count). For white noise a window that flat has probability 7e-10 (chi-square,
         31 degrees of freedom), and only windows at the top after extinction count; a
@@ -290,7 +290,9 @@ def _saturation(signal: np.ndarray, t: np.ndarray) -> Saturation:
     mean = (c1[:, w:] - c1[:, :-w]) / w
     sd = np.sqrt(np.maximum((c2[:, w:] - c2[:, :-w]) / w - mean**2, 0.0) * (w / (w - 1)))
     ends = t[w - 1:]                                   # time of each window's last sample
-    at_top = mean >= (y.max(axis=1) - 5.0 * sigma)[:, None]
+    # at the top, or at the bottom for a chain that inverts (the clipping rule checks both too)
+    at_top = ((mean >= (y.max(axis=1) - 5.0 * sigma)[:, None])
+              | (mean <= (y.min(axis=1) + 5.0 * sigma)[:, None]))
     candidates = at_top & (ends > 0)[None, :]
     flat = candidates & (sd < SAT_FLATNESS * sigma[:, None]) & (sigma > 0)[:, None]
     flags = flat.any(axis=1)

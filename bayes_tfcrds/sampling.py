@@ -399,6 +399,9 @@ class _HDFStore:
                 else:
                     good = self._last_intact(g, it)
         except (OSError, KeyError, RuntimeError) as exc:
+            if "unable to lock file" in str(exc).lower():   # HDF5's lock: another run writes it
+                raise RuntimeError(f"{self.path} is open in another process (another run writing to the "
+                                   "same output?); not touched") from exc
             raise _Damaged(f"cannot be read ({type(exc).__name__}: {exc})") from exc
         if good is None:
             raise _Damaged(f"ensemble {name} has no intact commit")

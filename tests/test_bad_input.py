@@ -172,6 +172,8 @@ def test_saturation_below_the_rails_is_told_apart_from_clipping():
     # flatter than the noise allows: 1.4 mV / sqrt(50) after saturation against 2 mV before it
     ratio = rd.saturation.scatter_v[2] / rd.saturation.noise_v[2]
     assert ratio < 0.2, ratio
+    # an inverting chain saturates at the bottom: the same rule applies there
+    np.testing.assert_array_equal(_rows(t, -signal).saturated, [0, 0, 1, 0, 0])
     fits = fit_ringdowns(rd, [2e-6], "crds")
     assert [fits.status(i, 0) for i in range(5)] == ["ok", "ok", "clipped", "ok", "ok"]
     assert np.isnan(fits.tau_s[2, 0]) and np.all(np.isfinite(fits.tau_s[[0, 1, 3, 4], 0]))

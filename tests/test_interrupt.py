@@ -90,6 +90,24 @@ def test_unreadable_chain_file_is_moved_aside_and_resampled(tmp_path):
     assert sorted(p.name.split("-")[0] for p in tmp_path.iterdir()) == ["chains.h5", "chains.h5.damaged"]
 
 
+def test_chain_file_in_use_by_another_run_is_left_alone(tmp_path):
+    """Two runs writing to one output: HDF5's lock refuses the second, which must not mistake the
+    file for a damaged one and move it aside under the first."""
+    path = tmp_path / "chains.h5"
+    short_run(n=100, backend_path=path)
+    holder = subprocess.Popen([sys.executable, "-c", "import h5py, sys, time\n"
+                               f"f = h5py.File({str(path)!r}, 'a'); print('open', flush=True); time.sleep(60)"],
+                              stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "open"
+        with pytest.raises(RuntimeError, match="open in another process"):
+            short_run(n=200, backend_path=path)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert sorted(os.listdir(tmp_path)) == ["chains.h5"] and _iterations(path) == [100] * 4
+
+
 # ----------------------------------------------------------------------------- the command
 def _command(bundle, out):
     exe = Path(sys.executable).with_name("bayes-tfcrds")
