@@ -243,12 +243,14 @@ class RingdownData(_Record):
         A saturated detector or amplifier pins its output at a level inside the ADC range: its
         own noise is cut off with the signal, so the top is flatter than the rest of the record
         while the averaged values, unlike rail clipping, need not repeat exactly. Flagged when a
-        window of ``SAT_WINDOW`` = 32 samples at the transient's top (mean within 5 sigma of the
-        maximum; or bottom, for an inverting chain) and ending at t > 0 has a standard deviation below ``SAT_FLATNESS`` = 0.35 sigma,
-        sigma being the noise of the record's second half (from second differences, so a smooth
-        decay does not count). For white noise a window that flat has probability 7e-10 (chi-square,
-        31 degrees of freedom), and only windows at the top after extinction count; a
-        record without noise (sigma = 0) cannot be judged and is never flagged. Transients
+        window of ``SAT_WINDOW`` = 32 samples that holds extinction (starts at or before it,
+        ends after it), lies at the transient's top (mean within 5 sigma of the maximum; or
+        bottom, for an inverting chain) and has a standard deviation below ``SAT_FLATNESS`` =
+        0.35 sigma, sigma being the noise of the record's second half (from second differences,
+        so a smooth decay does not count). For white noise a window that flat has probability
+        7e-10 (chi-square, 31 degrees of freedom) and at most 32 windows are tested per
+        transient. ``saturation.end_s`` is where the run of flat windows ends. A record without
+        noise (sigma = 0) cannot be judged and is never flagged. Transients
         clipped at the rails (exact repeats) are reported as clipped, not here.
         """
         return self.saturation.flags & ~self._rails
@@ -293,11 +295,20 @@ def _saturation(signal: np.ndarray, t: np.ndarray) -> Saturation:
     # at the top, or at the bottom for a chain that inverts (the clipping rule checks both too)
     at_top = ((mean >= (y.max(axis=1) - 5.0 * sigma)[:, None])
               | (mean <= (y.min(axis=1) + 5.0 * sigma)[:, None]))
-    candidates = at_top & (ends > 0)[None, :]
-    flat = candidates & (sd < SAT_FLATNESS * sigma[:, None]) & (sigma > 0)[:, None]
-    flags = flat.any(axis=1)
-    last = flat.shape[1] - 1 - np.argmax(flat[:, ::-1], axis=1)
-    end_s = np.where(flags, ends[last], np.nan)
+    flat = at_top & (sd < SAT_FLATNESS * sigma[:, None]) & (sigma > 0)[:, None]
+    # a saturated output is pinned through extinction: the flat run must hold a window that
+    # starts at or before it (or at the first sample) and ends after it. Only these few windows
+    # are tested, so a long quiet baseline late in the record cannot raise a false alarm.
+    i_ext = int(np.searchsorted(t, 0.0))               # first sample at t >= 0
+    starts = np.arange(ends.size)
+    candidates = at_top & ((starts <= i_ext) & (ends > 0))[None, :]
+    seeds = flat & candidates
+    flags = seeds.any(axis=1)
+    first = np.argmax(seeds, axis=1)
+    # the plateau goes on while the following windows stay flat: its end is the last of them
+    after = (~flat) & (starts[None, :] > first[:, None])
+    stop = np.where(after.any(axis=1), np.argmax(after, axis=1), ends.size) - 1
+    end_s = np.where(flags, ends[np.clip(stop, 0, ends.size - 1)], np.nan)
     scatter = np.where(candidates.any(axis=1), np.min(np.where(candidates, sd, np.inf), axis=1), np.nan)
     for a in (flags, end_s, scatter, sigma):
         a.setflags(write=False)
