@@ -64,8 +64,11 @@ def fit_reference(bundle, config, profile_name: str = "qsdhcp"):
 
 
 def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinction", t_cut_s: float = 4e-6,
-                 profile_name: str = "qsdhcp", calibration=None) -> dict:
-    """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare."""
+                 profile_name: str = "qsdhcp", calibration=None, physical_bounds: bool = False) -> dict:
+    """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare.
+
+    ``physical_bounds`` keeps Gamma2, nu_VC >= 0 in the CRDS line fit (see ``spectrum.fit_line``).
+    """
     gd = doppler_of(bundle.sample)
     check_t_cuts(config, [t_cut_s])
     check_overlap(config)
@@ -78,7 +81,7 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
     spec = crds_spectrum(fits.nu_hz, fits.tau_s[:, 0], fits.tau_u_s[:, 0])
     if spec.nu_hz.size < 8:
         raise LineFitError(f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}")
-    lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz)
+    lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz, physical_bounds=physical_bounds)
     ref = fit_reference(bundle, config, profile_name)
     n = number_density(bundle.sample.pressure_pa, bundle.sample.temperature_k, bundle.sample.mole_fraction)
     out = {

@@ -214,13 +214,16 @@ def _initial(spectra, model: LineModel, start: dict):
 
 def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = None, nu_ref_hz: float = None,
              shape_free=None, fixed: dict | None = None, slopes=None, start: dict | None = None,
-             scale_by_chi2: bool = False) -> LineFit:
+             scale_by_chi2: bool = False, physical_bounds: bool = False) -> LineFit:
     """Least-squares fit of one line to one or more spectra (CRDS absorption, CMDS dispersion).
 
     ``doppler_hwhm_hz`` (Hz) is held fixed; ``nu_ref_hz`` (Hz) is the nominal position (the fit
     returns ``position_offset_hz`` from it); ``shape_free`` names the shape parameters fitted
     (default per profile), ``fixed`` holds the others (Hz); ``slopes`` per spectrum whether the
-    baseline is sloped (default: absorption constant, dispersion sloped).
+    baseline is sloped (default: absorption constant, dispersion sloped). ``physical_bounds``
+    holds Gamma2 and nu_VC >= 0 as well: the estimator of a model one knows to be wrong (CRDS
+    without H, whose distorted line the free fit follows to nu_VC ~ -0.7 Gamma0) when its
+    parameters are to be read as rates; it is biased where the data barely resolve them.
     """
     spectra = tuple(spectra)
     if profile_name not in PROFILES:
@@ -242,7 +245,8 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
     if np.any(~np.isfinite(y)) or np.any(~np.isfinite(u)) or np.any(u <= 0):
         raise ValueError("spectrum values must be finite and uncertainties > 0")
     theta0 = _initial(spectra, model, dict(start or {}))
-    lo = np.array([0.0 if n in NONNEGATIVE else -np.inf for n in names])
+    bounded = NONNEGATIVE | (set(PHYSICAL_NONNEGATIVE) if physical_bounds else set())
+    lo = np.array([0.0 if n in bounded else -np.inf for n in names])
     theta0 = np.maximum(theta0, lo + 1e-300 * (lo == 0))
     scale = np.abs(theta0) + np.array([1e-3 * doppler_hwhm_hz if n == "position_offset_hz" else 0.0
                                        for n in names])

@@ -46,7 +46,7 @@ def crds_metrics(tf, campaign=Campaign()):
             out["tau_base"] = 100 * bias[np.argmax(tau)]
             out["tau_centre"] = 100 * bias[np.argmin(tau)]
         spec = crds_spectrum(nu, f.tau_s, f.tau_u_s)
-        lf = fit_line([spec], "qsdhcp", lt.doppler_hwhm_hz, lt.nu0_hz)
+        lf = fit_line([spec], "qsdhcp", lt.doppler_hwhm_hz, lt.nu0_hz, physical_bounds=True)
         out[f"A{int(tc * 1e6)}"] = 100 * (lf.line_area / lt.line_area_hz_per_m - 1)
     return out
 

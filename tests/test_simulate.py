@@ -38,7 +38,10 @@ def test_presets_reproduce_the_letter_crds_biases(letter_d2_d4, label):
     fits = fit_ringdowns(cfg.ringdowns, [4e-6], "crds")
     bias = 100 * (fits.tau_s[:, 0] / tau - 1)
     got = {"tau_base": bias[np.argmax(tau)], "tau_centre": bias[np.argmin(tau)]}
-    res = analyse_line(bundle, cfg, method="crds", t_cut_s=8e-6)
+    # the letter reports its CRDS line fits as physical line shapes: with the free estimator the
+    # distorted D4 line pulls nu_VC to ~ -0.7 Gamma0 and A to -12 %; with Gamma2, nu_VC >= 0 (as
+    # the presets were calibrated, benchmarks/calibrate_presets.py) A is -8 %, the letter's figure
+    res = analyse_line(bundle, cfg, method="crds", t_cut_s=8e-6, physical_bounds=True)
     # the bias the preset must reproduce is A/A_true - 1; A/A_ref estimates it with the CMDS
     # reference's own noise on top (0.06 % in the letter, more at this reduced size)
     got["A8"] = 100 * (res["line_area"]["value_si"] / truth["line"]["line_area_hz_per_m"] - 1)
