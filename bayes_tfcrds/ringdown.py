@@ -347,13 +347,17 @@ class RingdownFits:
     residuals_v: np.ndarray | None = field(default=None, repr=False)
 
     record_end_s: float = np.inf
+    saturated: np.ndarray | None = None
 
     def status(self, i, j) -> str:
         """``ok``, or why the fit at point i and t_cut j is not to be trusted as it stands.
 
-        ``record-short``: less than two decay times of record after t_cut, where the offset b and
+        ``clipped``: the transient hit the digitizer's rails; ``saturated``: the detector pinned
+        it below them (neither is fitted). ``record-short``: less than two decay times of record after t_cut, where the offset b and
         tau are nearly degenerate (the fit's u(tau) says so, but a reader should be told).
         """
+        if self.saturated is not None and self.saturated[i]:
+            return "saturated"
         if self.clipped[i]:
             return "clipped"
         if not self.converged[i, j]:
@@ -401,4 +405,5 @@ def fit_ringdowns(ringdowns, t_cuts_s, method="crds", tf: TFParams | None = None
     return RingdownFits(nu_hz=np.asarray(ringdowns.nu_hz), t_cut_s=t_cuts, tau_s=out["tau"], tau_u_s=out["tau_u"],
                         amplitude_v=out["amp"], offset_v=out["off"], chi2_red=out["chi2r"], converged=conv,
                         clipped=clipped, method=method, window=window if method == "tf-crds" else None,
-                        noise_estimated=est, residuals_v=resid, record_end_s=float(ringdowns.time_s[-1]))
+                        noise_estimated=est, residuals_v=resid, record_end_s=float(ringdowns.time_s[-1]),
+                        saturated=np.asarray(getattr(ringdowns, "saturated", np.zeros(m, bool)), bool))

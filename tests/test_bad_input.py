@@ -175,7 +175,7 @@ def test_saturation_below_the_rails_is_told_apart_from_clipping():
     # an inverting chain saturates at the bottom: the same rule applies there
     np.testing.assert_array_equal(_rows(t, -signal).saturated, [0, 0, 1, 0, 0])
     fits = fit_ringdowns(rd, [2e-6], "crds")
-    assert [fits.status(i, 0) for i in range(5)] == ["ok", "ok", "clipped", "ok", "ok"]
+    assert [fits.status(i, 0) for i in range(5)] == ["ok", "ok", "saturated", "ok", "ok"]
     assert np.isnan(fits.tau_s[2, 0]) and np.all(np.isfinite(fits.tau_s[[0, 1, 3, 4], 0]))
 
 
@@ -219,7 +219,7 @@ def test_saturated_bundle_warns_in_validate_and_fit(campaign, tmp_path, capsys):
     err = capsys.readouterr().err
     assert "1 clipped transients not fitted" in err and "1 of them saturated below the digitizer rails" in err
     rows = list(csv.DictReader(csv_out.open()))
-    bad = [r for r in rows if r["status"] == "clipped"]
+    bad = [r for r in rows if r["status"] == "saturated"]
     assert len(bad) == 1 and float(bad[0]["nu_hz"]) == pytest.approx(rd.nu_hz[i], abs=1e-3)
     assert bad[0]["tau_s"] == "nan"
 
