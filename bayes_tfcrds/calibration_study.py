@@ -573,7 +573,10 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
         if rows:
             rep.add_table(["quantity", "campaigns", "68 % coverage (%)", "95 % coverage (%)", "sd of pulls",
                            "median u(MCMC)/u(Laplace)"], rows)
-        rep.add_diagnostic(f"MCMC cross-check: convergence gates met on every campaign", not mfail,
+        if mfail:
+            rep.add_table(["campaign", "status", "where"],
+                          [[r["index"], r["status"], " <- ".join(reversed(r.get("trace", [])))] for r in mfail])
+        rep.add_diagnostic("MCMC cross-check: every campaign sampled and its convergence gates met", not mfail,
                            f"{len(mfail)} of {len(mrecs)} failed" + (f": {mfail[0]['status']}" if mfail else ""))
         numbers["mcmc_check"] = {"n": m, "n_ok": len(mok), "failed": [r["status"] for r in mfail], "summaries": msums}
     numbers["records"] = [{k: r[k] for k in ("index", "status", "draw", "quantities") if k in r} for r in recs]
