@@ -34,6 +34,7 @@ from .constants import C, intensity_from_cm_per_molecule, number_density
 from .linedata import load_line
 from .simulate import (PRESETS, Campaign, _cmds_noise, _tf_measurement, absorption_truth, acquire,
                        detected_transients, dispersion_shift_truth, line_truth, spectral_points)
+from .report import git_commit
 from .transfer_function import TFParams
 
 LEVELS = (0.68, 0.95)
@@ -248,7 +249,7 @@ def run_campaign(settings: CoverageSettings, index: int) -> dict:
     rec = {"index": index, "fingerprint": settings.fingerprint(), "posterior": settings.options.posterior,
            "draw": {**{k: v for k, v in asdict(draw).items() if k != "tf"},
                     **{f"tf_{k}": v for k, v in asdict(draw.tf).items()}},
-           "line_area_true_hz_per_m": truth["line"]["line_area_hz_per_m"]}
+           "line_area_true_hz_per_m": truth["line"]["line_area_hz_per_m"], "code": git_commit()}
     try:
         rec.update(analyse_campaign(bundle, truth, settings.options, g_fit))
     except Exception as exc:          # a campaign the pipeline cannot analyse is counted, never dropped
@@ -579,5 +580,9 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
         rep.add_diagnostic("MCMC cross-check: every campaign sampled and its convergence gates met", not mfail,
                            f"{len(mfail)} of {len(mrecs)} failed" + (f": {mfail[0]['status']}" if mfail else ""))
         numbers["mcmc_check"] = {"n": m, "n_ok": len(mok), "failed": [r["status"] for r in mfail], "summaries": msums}
+    codes = sorted({r.get("code", "not recorded") for r in recs + (mrecs if m and post != "mcmc" else [])})
+    rep.add_text("Campaign records are reused on a rerun whatever the code version; they were computed with: "
+                 + ", ".join(codes) + ". Delete the campaigns/ folder to recompute them with the current code.")
+    numbers["campaign_code"] = codes
     numbers["records"] = [{k: r[k] for k in ("index", "status", "draw", "quantities") if k in r} for r in recs]
     return numbers
