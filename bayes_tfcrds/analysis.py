@@ -6,7 +6,7 @@ the Bayesian layer compose them.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -35,12 +35,49 @@ class Calibration:
         return self.refined.params if self.refined is not None else self.beat.params
 
 
-def beat_note_fit(config, variant: str = "causal", free=BEAT_FREE) -> TFFit:
-    """Fit Eq. 2 to the configuration's beat-note measurement."""
+MIRROR_DCHI2 = 9.0     # beat-note chi2 difference below which |H| alone cannot choose (3 sigma)
+
+
+def beat_note_fit(config, variant: str = "causal", free=BEAT_FREE, window: str = "extinction") -> TFFit:
+    """Fit Eq. 2 to the configuration's beat-note measurement, its phase ambiguity resolved.
+
+    The beat note measures |H| only, and |H| nearly repeats itself under A_r -> -A_r/(1 + 2 A_r)
+    (the resonant path subtracting instead of adding): the two modes can fit the beat note
+    equally well while their phase responses, and hence the ring-down distortion, differ by
+    percent-level decay-time biases. When the mirror mode is within MIRROR_DCHI2 of the best
+    beat-note fit, the ring-downs decide: the mode whose TF-CRDS fits of the refinement
+    transients have the lower total chi2 is taken.
+    """
     if config.transfer_function is None:
         raise AnalysisError(f"configuration {config.name!r} has no /configs/{config.name}/transfer_function "
                             "group: TF-CRDS needs the beat-note measurement of the chain")
-    return fit_beat_note(config.transfer_function, variant=variant, free=free)
+    best = fit_beat_note(config.transfer_function, variant=variant, free=free)
+    a = best.params.a_r
+    if "a_r" not in free or config.ringdowns is None or abs(1 + 2 * a) < 1e-3:
+        return best
+    mirror = replace(best.params, a_r=float(np.clip(-a / (1 + 2 * a), -0.98, 1e4)))
+    try:
+        alt = fit_beat_note(config.transfer_function, variant=variant, free=free, start=mirror)
+    except RuntimeError:
+        return best
+    if abs(alt.params.a_r - a) < 0.05 * max(1.0, abs(a)) or alt.chi2 > best.chi2 + MIRROR_DCHI2:
+        return best
+    rd = config.ringdowns
+    idx = select_refinement_points(rd)
+    t_cuts = np.asarray(DEFAULT_T_CUTS, float)
+    noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
+    rows = np.repeat(np.arange(idx.size), t_cuts.size)
+
+    def ringdown_chi2(fit):
+        # a mode that cannot even fit the ring-downs (tau collapsing, singular) loses outright
+        try:
+            f = fit_transients(rd.time_s, rd.signal_v[idx], np.tile(t_cuts, idx.size), "tf-crds", fit.params,
+                               window, noise_v=noise, rows_of=rows)
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+            return np.inf
+        return float(np.sum(f.chi2)) if np.all(f.converged) else np.inf
+
+    return min((best, alt), key=ringdown_chi2)
 
 
 def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np.ndarray:
@@ -62,7 +99,7 @@ def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np
 def calibrate(config, t_cuts_s=DEFAULT_T_CUTS, window: str = "extinction", refine: bool = True,
               free=REFINE_FREE, variant: str = "causal", n_points: int = 6) -> Calibration:
     """Beat-note fit, then (with ``refine``) the multi-ring-down refinement of ``free``."""
-    beat = beat_note_fit(config, variant=variant)
+    beat = beat_note_fit(config, variant=variant, window=window)
     if not refine:
         return Calibration(beat=beat, refined=None)
     rd = config.ringdowns

@@ -274,7 +274,8 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
             chi2 = chi2 / s2
         else:
             noise_used = noise[rows_of]
-        cov = covariance_from_fisher(fisher)
+        cov, singular = _row_covariances(fisher)
+        conv = conv & ~singular
         return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
                              chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=noise is None,
                              converged=conv, t_cut_s=t_cut, method=method, window=window,
@@ -310,11 +311,28 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
         wc = wm * cols[i]
         for j in range(i, 3):
             fisher[:, i, j] = fisher[:, j, i] = _dot(wc, cols[j])
-    cov = covariance_from_fisher(fisher)
+    cov, singular = _row_covariances(fisher)
+    conv = conv & ~singular
     return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
                          chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=False,
                          converged=conv, t_cut_s=t_cut, method=method, window=window,
                          residuals_v=resid if keep_residuals else None)
+
+
+def _row_covariances(fisher):
+    """Per-row inverse Fisher matrices; a singular row (a degenerate fit: tau collapsed or no
+    decay left in the window) gets NaN and is reported unconverged instead of failing the batch."""
+    try:
+        return covariance_from_fisher(fisher), np.zeros(fisher.shape[0], bool)
+    except np.linalg.LinAlgError:
+        cov = np.full_like(fisher, np.nan)
+        singular = np.zeros(fisher.shape[0], bool)
+        for i in range(fisher.shape[0]):
+            try:
+                cov[i] = covariance_from_fisher(fisher[i])
+            except np.linalg.LinAlgError:
+                singular[i] = True
+        return cov, singular
 
 
 def _rational_chain(tf: TFParams):

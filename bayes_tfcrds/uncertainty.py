@@ -90,7 +90,7 @@ class BudgetResult:
 
 def _h_posterior(config, options: BudgetOptions, rng, backend, progress):
     """Beat-note MCMC, then the refinement update of ``refine_free``; returns draws (n, 4)."""
-    beat = beat_note_fit(config, free=BEAT_FREE)
+    beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
     tfd = config.transfer_function
     post = BeatNotePosterior(f_hz=np.asarray(tfd.f_hz), h_mag=np.asarray(tfd.h_mag),
                              h_mag_u=np.asarray(tfd.h_mag_u), free=BEAT_FREE, fixed=beat.params)
