@@ -227,9 +227,10 @@ def cmd_study(args) -> int:
     try:
         if args.workers > 1:
             with ProcessPoolExecutor(max_workers=args.workers) as pool:
-                html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet, pool=pool)
+                html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet, pool=pool,
+                                                seed=args.seed)
         else:
-            html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet)
+            html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet, seed=args.seed)
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -315,7 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.set_defaults(func=cmd_budget)
 
-    sp = common(sub.add_parser("study", help="run a declared study and write its report"))
+    sp = common(sub.add_parser("study", help="run a declared study and write its report"), seed=None,
+                note=" (None: the [study] seed of the file)")
     sp.add_argument("file", help="study file (TOML), e.g. studies/letter_tcut.toml")
     sp.add_argument("-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/")
     sp.add_argument("--quiet", action="store_true")

@@ -187,10 +187,15 @@ def campaign_of(study: Study, outdir: Path):
     return load_bundle(path), load_truth(path), path
 
 
-def run_study(path, outdir, progress: bool = False, pool=None):
-    """Run the study file at ``path`` and write its report into ``outdir``; returns the report paths."""
+def run_study(path, outdir, progress: bool = False, pool=None, seed: int | None = None):
+    """Run the study file at ``path`` and write its report into ``outdir``; returns the report paths.
+
+    ``seed`` (if given) replaces the file's ``[study] seed``.
+    """
     from .report import Report, provenance
     study = load_study(path)
+    if seed is not None:
+        study = replace(study, seed=int(seed))
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     rep = Report(title=study.title)
