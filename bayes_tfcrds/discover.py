@@ -26,8 +26,8 @@ from scipy import stats
 
 from .analysis import AnalysisError, calibrate
 from .constants import line_area_to_cm2
-from .extensions import (SHARED, SHAPE_EFFECTS, TransientSpec, fit_spectrum_extended, fit_transient_rows,
-                         optimise_shared)
+from .extensions import (SHARED, TransientSpec, fit_spectrum_extended, fit_transient_rows, optimise_shared,
+                         shared_covariance)
 from .linefit import doppler_of
 from .spectrum import absorption_from_tau
 
@@ -332,8 +332,12 @@ def _calibration(config, window, t_cuts):
     return _CAL_CACHE[key][1]
 
 
-def try_candidate(bundle, config, ev: Evaluation, effect, t_cuts=DEFAULT_T_CUTS) -> Candidate:
-    """Fit one extension on top of the evaluated state and score it (Delta BIC on its block)."""
+def try_candidate(bundle, config, ev: Evaluation, effect, t_cuts=DEFAULT_T_CUTS, with_cov: bool = False) -> Candidate:
+    """Fit one extension on top of the evaluated state and score it (Delta BIC on its block).
+
+    The shared parameters' covariance (curvature of the profiled chi2, a dozen more fits) is
+    computed only with ``with_cov``: discovery asks for it for the effect it adds.
+    """
     st = ev.state
     model = st.model
     rd = config.ringdowns
@@ -343,7 +347,8 @@ def try_candidate(bundle, config, ev: Evaluation, effect, t_cuts=DEFAULT_T_CUTS)
     if effect in TRANSIENT_LEVEL:
         base = st.spec()
         try:
-            params, res, cov = optimise_shared(effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first)
+            params, res, cov = optimise_shared(effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first,
+                                               with_cov=with_cov)
         except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
             return _fail(effect, f"fit failed: {exc}")
         k = len(SHARED[effect]) + (2 * m if effect == "mode_beating" else 0)
@@ -366,6 +371,17 @@ def try_candidate(bundle, config, ev: Evaluation, effect, t_cuts=DEFAULT_T_CUTS)
         except (AnalysisError, RuntimeError, ValueError) as exc:
             return _fail(effect, f"calibration failed: {exc}")
         new = ModelState(new_model, dict(st.shared), dict(st.shared_u), cal)
+        if effect == "transfer_function":
+            b_old, b_new = ev.beat, beat_block(config, new)
+            if b_old is None or b_new is None:
+                return _fail(effect, "no beat-note measurement")
+            ev_beat = b_old["chi2"] - b_new["chi2"] - (b_new["k"] - b_old["k"]) * np.log(b_new["n"])
+            if ev_beat < 0:
+                # the beat note measures H directly (0.15 % noise): if it does not prefer a chain
+                # over a flat response, an H fitted to it is noise, and its extinction grid can be
+                # arbitrarily long; the transients are not refitted with it
+                return Candidate(effect, ev_beat, b_old["chi2"] - b_new["chi2"], b_new["k"] - b_old["k"], b_new["n"],
+                                 "beat", {}, None, "the beat note prefers a flat |H| (beat-note block only)")
         try:
             res = fit_transient_rows(rd, tc0, ev.good, new.spec(), ev.tau[:, 0])
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -468,7 +484,7 @@ def discover(bundle, config_name, start: ExperimentModel | str | None = None, t_
         # a declared transient extension starts with its parameters fitted on the data
         ev0 = evaluate(bundle, config, ModelState(ExperimentModel(model.effects - {eff}), dict(state.shared),
                                                   {}, state.calibration), t_cuts)
-        c = try_candidate(bundle, config, ev0, eff, t_cuts)
+        c = try_candidate(bundle, config, ev0, eff, t_cuts, with_cov=True)
         state.shared[eff] = {k: v[0] for k, v in c.params.items()}
         state.shared_u[eff] = {k: v[1] for k, v in c.params.items()}
     ev = evaluate(bundle, config, state, t_cuts)
@@ -488,6 +504,13 @@ def discover(bundle, config_name, start: ExperimentModel | str | None = None, t_
         if best is None or not np.isfinite(best.evidence) or best.evidence < threshold:
             say("no candidate passes the threshold: stop")
             break
+        if best.effect in TRANSIENT_LEVEL:
+            cov = shared_covariance(best.effect, config.ringdowns, np.full(ev.good.size, ev.t_cuts[0]), ev.good,
+                                    ev.state.spec(), {k: v[0] for k, v in best.params.items()}, ev.tau[:, 0])
+            for i, k in enumerate(best.params):
+                u = float(np.sqrt(cov[i, i])) if cov is not None else float("nan")
+                best.params[k] = (best.params[k][0], u, best.params[k][2])
+            best.state.shared_u[best.effect] = {k: v[1] for k, v in best.params.items()}
         new_ev = evaluate(bundle, config, best.state, t_cuts, tau_start=ev.tau[:, 0])
         runner = cands[1] if len(cands) > 1 else None
         steps.append({"effect": best.effect, "evidence": float(best.evidence), "delta_chi2": float(best.delta_chi2),

@@ -23,7 +23,7 @@ import numpy as np
 from bayes_tfcrds.discover import CANDIDATES, discover
 from bayes_tfcrds.simulate import Campaign, simulate_campaign
 
-CAMPAIGN = replace(Campaign(), n_points=31, n_samples=4096)
+CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
 # hidden case -> (simulator effects, start model). Effect sizes are the simulator's defaults
 # (speed dependence and hard collisions: the line data's Gamma2/Gamma0 = 0.10 and nu_VC), except
 # second_mode: a 1 % transverse mode (default 0.3 %), because at 25 transients of 4096 samples a
