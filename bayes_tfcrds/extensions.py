@@ -274,9 +274,9 @@ def residual_periodogram_peak(resid_norm, dt_s, f_min_hz=2e5):
 def bin_ringdowns(rd, k: int):
     """Average k consecutive samples (noise / sqrt(k)): a coarser record for parameter searches.
 
-    Decay times are >= 1 us and dt is tens of ns, so averaging k = 4 samples changes an
-    exponential by < (k dt / tau)^2 / 24 ~ 1e-4 of itself: enough to locate the minimum,
-    which is then re-evaluated on the full record.
+    Decay times are >= 3 us and dt is tens of ns, so averaging k = 8 samples (160 ns) changes an
+    exponential's shape by < (k dt / tau)^2 / 24 ~ 1e-4: enough to locate the minimum, which is
+    then re-evaluated on the full record.
     """
     from .bundle import RingdownData
     n = rd.n_samples // k
@@ -286,7 +286,7 @@ def bin_ringdowns(rd, k: int):
 
 
 def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, tau_start_s, resid_norm=None,
-                    search_bin: int = 4):
+                    search_bin: int = 8, with_cov: bool = True):
     """Fit the shared parameters of extension ``name`` on the rows' total chi2.
 
     Returns (params dict, TransientResult, covariance of the shared parameters or None).
@@ -389,8 +389,23 @@ def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, t
                                                    options={"xatol": 1e-3 * w}).x])
     chi2(x)
     res = cache[key_of(x)[1]][1]
-    cov = _shared_covariance(chi2, x, lo, hi)
+    cov = _shared_covariance(chi2, x, lo, hi) if with_cov else None
     return dict(zip(names, map(float, x))), res, cov
+
+
+def shared_covariance(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, params: dict, tau_start_s):
+    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2 curvature)."""
+    names = [s[0] for s in SHARED[name]]
+    warm = {"tau": np.asarray(tau_start_s, float)}
+
+    def chi2(x):
+        spec = TransientSpec(base.method, base.window, base.tf, {**base.shared, name: dict(zip(names, map(float, x)))})
+        res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec, warm["tau"])
+        return float(res.chi2.sum())
+
+    lo = np.array([s[2] for s in SHARED[name]])
+    hi = np.array([s[3] for s in SHARED[name]])
+    return _shared_covariance(chi2, np.array([params[n] for n in names], float), lo, hi)
 
 
 def _shared_covariance(chi2, x, lo, hi):
