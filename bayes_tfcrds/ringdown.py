@@ -323,7 +323,8 @@ def _row_covariances(fisher):
     """Per-row inverse Fisher matrices; a singular row (a degenerate fit: tau collapsed or no
     decay left in the window) gets NaN and is reported unconverged instead of failing the batch."""
     try:
-        return covariance_from_fisher(fisher), np.zeros(fisher.shape[0], bool)
+        cov = covariance_from_fisher(fisher)
+        singular = np.zeros(fisher.shape[0], bool)
     except np.linalg.LinAlgError:
         cov = np.full_like(fisher, np.nan)
         singular = np.zeros(fisher.shape[0], bool)
@@ -332,7 +333,10 @@ def _row_covariances(fisher):
                 cov[i] = covariance_from_fisher(fisher[i])
             except np.linalg.LinAlgError:
                 singular[i] = True
-        return cov, singular
+    # numerically singular rows can also come back with a negative variance
+    singular |= ~np.all(np.diagonal(cov, axis1=-2, axis2=-1) > 0, axis=-1)
+    cov[singular] = np.nan
+    return cov, singular
 
 
 def _rational_chain(tf: TFParams):
