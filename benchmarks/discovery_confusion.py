@@ -20,28 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.discover import CANDIDATES, discover
+from bayes_tfcrds.discover import CANDIDATES, HIDDEN_CASES, discover
 from bayes_tfcrds.simulate import Campaign, simulate_campaign
 
 CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
-# hidden case -> (simulator effects, start model). Effect sizes are the simulator's defaults
-# (speed dependence and hard collisions: the line data's Gamma2/Gamma0 = 0.10 and nu_VC), except
-# second_mode: a 1 % transverse mode (default 0.3 %), because at 25 transients of 4096 samples a
-# 0.3 % mode with tau ratio 0.7 is as well described by a static nonlinearity at tau ratio 1/2.
-CASES = {
-    "nothing": ({}, None),
-    "transfer_function": ({"transfer_function": {}}, None),
-    "window_history": ({"transfer_function": {}}, "transfer_function"),
-    "static_nonlinearity": ({"static_nonlinearity": {}}, None),
-    "extinction_tail": ({"extinction_tail": {}}, None),
-    "second_mode": ({"second_mode": {"fraction": 1e-2}}, None),
-    "baseline_drift": ({"baseline_drift": {}}, None),
-    "mode_beating": ({"mode_beating": {}}, None),
-    "speed_dependence": ({"speed_dependence": {}}, None),
-    "hard_collisions": ({"hard_collisions": {}}, None),
-    "etalon": ({"etalon": {}}, None),
-    "neighbour_line": ({"neighbour_line": {}}, None),
-}
+CASES = {"nothing": ({}, None), **HIDDEN_CASES}
 TWO_EFFECTS = ("baseline_drift+etalon", ({"baseline_drift": {}, "etalon": {}}, None))
 
 

@@ -19,25 +19,12 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bayes_tfcrds.discover import DEFAULT_THRESHOLD, ExperimentModel, discover, parse_model, try_candidate, evaluate, \
-    ModelState
+from bayes_tfcrds.discover import (DEFAULT_THRESHOLD, HIDDEN_CASES, ExperimentModel, ModelState, discover,
+                                   evaluate, parse_model, try_candidate)
 from bayes_tfcrds.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
 from bayes_tfcrds.simulate import Campaign, simulate_campaign
 
 CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
-HIDDEN = {
-    "transfer_function": ({"transfer_function": {}}, None),
-    "window_history": ({"transfer_function": {}}, "transfer_function"),
-    "static_nonlinearity": ({"static_nonlinearity": {}}, None),
-    "extinction_tail": ({"extinction_tail": {}}, None),
-    "second_mode": ({"second_mode": {"fraction": 1e-2}}, None),
-    "baseline_drift": ({"baseline_drift": {}}, None),
-    "mode_beating": ({"mode_beating": {}}, None),
-    "speed_dependence": ({"speed_dependence": {}}, None),
-    "hard_collisions": ({"hard_collisions": {}}, None),
-    "etalon": ({"etalon": {}}, None),
-    "neighbour_line": ({"neighbour_line": {}}, None),
-}
 
 
 def _bundle(effects, seed):
@@ -89,9 +76,9 @@ def hidden_runs():
     return {}
 
 
-@pytest.mark.parametrize("effect", list(HIDDEN))
+@pytest.mark.parametrize("effect", list(HIDDEN_CASES))
 def test_hidden_effect_is_named_first_and_gaps_close(effect, hidden_runs):
-    effects, start = HIDDEN[effect]
+    effects, start = HIDDEN_CASES[effect]
     bundle, truth = _bundle(effects, 21)
     res = discover(bundle, "D2", start)
     hidden_runs[effect] = res
