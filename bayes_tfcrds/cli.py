@@ -104,10 +104,7 @@ def cmd_simulate(args) -> int:
         for text in args.effect or []:
             name, params = parse_effect(text)
             effects[name] = params
-        campaign = Campaign() if args.points is None else Campaign(n_points=args.points)
-        if args.samples is not None:
-            from dataclasses import replace
-            campaign = replace(campaign, n_samples=args.samples)
+        campaign = Campaign(n_points=args.points, n_samples=args.samples)
         rng = np.random.default_rng(args.seed)
         bundle, truth = simulate_campaign(args.preset or ["letter-D2"], rng, campaign, effects)
     except ValueError as exc:
@@ -127,7 +124,7 @@ def cmd_linefit(args) -> int:
     config = _config(bundle, args.config)
     try:
         result = analyse_line(bundle, config, method=args.method, window=args.window, t_cut_s=args.tcut[0],
-                              profile_name=args.profile)
+                              profile_name=args.profile, physical_bounds=args.shape_bounds == "physical")
     except (LineFitError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -138,6 +135,12 @@ def cmd_linefit(args) -> int:
     if result["record_short_points"]:
         print(f"warning: {result['record_short_points']} decay times come from less than two decay times of "
               f"record after t_cut = {args.tcut[0]:g} s (offset and tau nearly degenerate)", file=sys.stderr)
+    if result["unphysical_shape"]:
+        print(f"warning: {', '.join(result['unphysical_shape'])} ended below 0 (on the profile's continuation): "
+              "the line shape is not physical, often a sign that the model of the experiment is wrong "
+              "(plain CRDS of a distorted chain?); --shape-bounds physical holds them at 0", file=sys.stderr)
+    if result["shape_at_bound"]:
+        print(f"note: {', '.join(result['shape_at_bound'])} held at 0 by --shape-bounds physical", file=sys.stderr)
     la, ra = result["line_area"], result["reference_area"]
     print(f"A = {la['value']:.6e} +/- {la['u']:.2e} {la['unit']}; "
           + ("no CMDS reference in this configuration" if ra is None else
@@ -151,30 +154,37 @@ def cmd_demo(args) -> int:
     import json
     from dataclasses import replace
     from .bundle import load_bundle, save_bundle
-    from .simulate import Campaign, simulate_campaign
+    from .simulate import Campaign, simulate_campaign, spectral_points
     from .linefit import analyse_line
     from .analysis import calibrate
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     campaign = Campaign() if not args.quick else replace(Campaign(), n_points=41, n_samples=8192, n_avg=20)
     presets = ["letter-D1", "letter-D2", "letter-D3", "letter-D4"]
-    print(f"simulating {', '.join(presets)} (seed {args.seed}, ~{campaign.n_points} cavity modes x "
+    print(f"simulating {', '.join(presets)} (seed {args.seed}, {spectral_points(campaign).size} cavity modes x "
           f"{campaign.n_samples} samples, {campaign.n_avg} averages) ...", file=sys.stderr)
     bundle, truth = simulate_campaign(presets, np.random.default_rng(args.seed), campaign)
     path = out / "campaign.h5"
     save_bundle(bundle, path, truth=truth)
     bundle = load_bundle(path)
     results = []
-    lines = ["| config | method | t_cut (us) | A (cm^-2) | A/A_ref - 1 (%) | u (%) | chi2_red |",
-             "|---|---|---|---|---|---|---|"]
+    # The letter reads its CRDS line fits as physical line shapes (Gamma2, nu_VC >= 0), and so does
+    # the demo: on the distorted D3/D4 spectra the free estimator would follow the distortion to
+    # nu_VC < 0 (the column names any shape parameter the bound holds at 0). TF-CRDS fits are the
+    # same either way: the bounds are not reached when the model is right.
+    lines = ["| config | method | t_cut (us) | A (cm^-2) | A/A_ref - 1 (%) | u (%) | chi2_red | held at 0 |",
+             "|---|---|---|---|---|---|---|---|"]
     for name, cfg in bundle.configs.items():
         cal = calibrate(cfg)
         for method in ("crds", "tf-crds"):
             for tc in (4e-6, 8e-6):
-                r = analyse_line(bundle, cfg, method=method, t_cut_s=tc, calibration=cal if method == "tf-crds" else None)
+                r = analyse_line(bundle, cfg, method=method, t_cut_s=tc, physical_bounds=True,
+                                 calibration=cal if method == "tf-crds" else None)
                 results.append(r)
+                held = ", ".join(r["shape_at_bound"]) or "-"
                 lines.append(f"| {name} | {method} | {tc * 1e6:g} | {r['line_area']['value']:.6e} | "
-                             f"{100 * (r['ratio']['value'] - 1):+.3f} | {100 * r['ratio']['u']:.3f} | {r['chi2_red']:.2f} |")
+                             f"{100 * (r['ratio']['value'] - 1):+.3f} | {100 * r['ratio']['u']:.3f} | "
+                             f"{r['chi2_red']:.2f} | {held} |")
                 print(f"  {name} {method} t_cut {tc * 1e6:g} us done", file=sys.stderr)
     atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
     atomic_write_text(out / "summary.md", "# bayes-tfcrds demo: simulated letter campaign\n\n" + "\n".join(lines) + "\n")
@@ -255,7 +265,18 @@ def cmd_discover(args) -> int:
     return 0
 
 
+class _HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default where it has one (not for required options, flags or None)."""
+
+    def _get_help_string(self, action):
+        if action.required or action.default is None or action.default is False or action.help is None:
+            return action.help
+        return super()._get_help_string(action)
+
+
 def build_parser() -> argparse.ArgumentParser:
+    from .simulate import Campaign
+    from .uncertainty import BudgetOptions
     p = argparse.ArgumentParser(prog="bayes-tfcrds",
                                 description="Transfer-function-corrected CRDS with honest uncertainty budgets. "
                                             "The data contract (HDF5 measurement bundle) is FORMAT.md, shipped in "
@@ -264,20 +285,21 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp, seed=0, note=""):
-        sp.formatter_class = argparse.ArgumentDefaultsHelpFormatter
+        sp.formatter_class = _HelpWithDefaults
         sp.add_argument("--seed", type=int, default=seed, help="random seed" + note)
         return sp
 
     sp = common(sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
                 note=" (validate draws no random numbers)")
-    sp.add_argument("file")
+    sp.add_argument("file", help="measurement bundle (HDF5)")
     sp.set_defaults(func=cmd_validate)
 
     sp = common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
-    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds", help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
+    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
+                    help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
     sp.add_argument("--tcut", type=_floats, default=[2e-6, 4e-6, 8e-6], help="t_cut values in s, comma-separated")
     sp.add_argument("--transfer-function", dest="h", choices=["refined", "beat"], default="refined",
                     help="H for TF-CRDS: the beat-note fit refined on ring-downs, or the beat-note fit alone")
@@ -288,28 +310,36 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--preset", action="append", help="letter-D1 ... letter-D4 (repeatable; default letter-D2)")
     sp.add_argument("--effect", action="append", help="NAME[:key=value,...] (repeatable), e.g. "
                     "static_nonlinearity:beta=-3e-3")
-    sp.add_argument("--points", type=int, help="number of spectral points (default 101)")
-    sp.add_argument("--samples", type=int, help="samples per transient (default 16384)")
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("--points", type=int, default=Campaign.n_points,
+                    help="spectral points requested (modes that coincide on the FSR grid are dropped: the "
+                         "default span of +/- 10 GHz holds 99)")
+    sp.add_argument("--samples", type=int, default=Campaign.n_samples, help="samples per transient")
+    sp.add_argument("-o", "--output", required=True, help="bundle (HDF5) to write")
     sp.set_defaults(func=cmd_simulate)
 
     sp = common(sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS"))
     sp.add_argument("file")
-    sp.add_argument("--config")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
-    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
+    sp.add_argument("--config", help="configuration name, e.g. D2")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds", help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
+    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
+                    help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
-    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
-    sp.add_argument("-o", "--output", required=True)
+    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp", help="line profile fitted to the spectrum")
+    sp.add_argument("--shape-bounds", choices=["free", "physical"], default="free",
+                    help="free: Gamma2 and nu_VC may go below 0 on the profile's continuation (unbiased when the "
+                         "model is right; such fits are flagged); physical: held at >= 0, as the letter reads its fits")
+    sp.add_argument("-o", "--output", required=True, help="JSON file to write")
     sp.set_defaults(func=cmd_linefit)
     sp = common(sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS"))
     sp.add_argument("file")
-    sp.add_argument("--config")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds")
-    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction")
+    sp.add_argument("--config", help="configuration name, e.g. D2")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds", help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
+    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
+                    help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
-    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp")
-    sp.add_argument("--steps", type=int, help="MCMC steps per ensemble before the gates are checked")
+    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp", help="line profile fitted to the spectrum")
+    sp.add_argument("--steps", type=int, default=BudgetOptions.n_steps,
+                    help="MCMC steps per ensemble before the convergence gates are checked")
     sp.add_argument("--max-steps", type=int, help="longest run per ensemble; a run still missing a gate then is "
                                                   "reported as failed (default max(8 x steps, 24000))")
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -317,11 +347,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.set_defaults(func=cmd_budget)
 
     sp = common(sub.add_parser("study", help="run a declared study and write its report"), seed=None,
-                note=" (None: the [study] seed of the file)")
+                note=" (default: the [study] seed of the file)")
     sp.add_argument("file", help="study file (TOML), e.g. studies/letter_tcut.toml")
     sp.add_argument("-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/")
-    sp.add_argument("--quiet", action="store_true")
-    sp.add_argument("--workers", type=int, default=2, help="local worker processes (default 2: both cores)")
+    sp.add_argument("--quiet", action="store_true", help="no progress bars")
+    sp.add_argument("--workers", type=int, default=2, help="local worker processes (2 uses both cores)")
     sp.set_defaults(func=cmd_study)
 
     sp = common(sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
@@ -333,7 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "e.g. transfer_function,window_history,speed_dependence")
     sp.add_argument("--tcut", type=_floats, default=None, help="t_cut values in s (default 2e-6,4e-6,6e-6)")
     sp.add_argument("--threshold", type=float, default=10.0, help="Delta BIC an effect needs to be added")
-    sp.add_argument("--quiet", action="store_true")
+    sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.add_argument("-o", "--output", required=True, help="output folder (discovery.json, discovery.html)")
     sp.set_defaults(func=cmd_discover)
 

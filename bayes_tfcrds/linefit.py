@@ -9,7 +9,7 @@ import numpy as np
 from .analysis import AnalysisError, calibrate, fit_config
 from .constants import intensity_to_cm_per_molecule, line_area_to_cm2, number_density
 from .lineshape import doppler_hwhm_hz
-from .spectrum import cmds_spectrum, crds_spectrum, fit_line, ratio_with_uncertainty
+from .spectrum import PHYSICAL_NONNEGATIVE, cmds_spectrum, crds_spectrum, fit_line, ratio_with_uncertainty
 
 
 class LineFitError(ValueError):
@@ -100,6 +100,8 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
         "chi2_red": float(lf.chi2_red),
         # shape estimates below 0 (Gamma2, nu_VC): fitted on the profile's continuation, not negative rates
         "unphysical_shape": list(lf.unphysical),
+        # shape parameters held at 0 by physical_bounds (not free at the solution: u = 0)
+        "shape_at_bound": [n for n in lf.at_bound if n in PHYSICAL_NONNEGATIVE],
         "n_points": int(spec.nu_hz.size),
         "clipped_points": int(np.sum(fits.clipped)),
         # decays with less than two decay times of record after t_cut (offset and tau nearly degenerate)

@@ -73,6 +73,9 @@ def test_study_files_are_validated_with_the_key_named(tmp_path):
     bad.write_text('[study]\nname = "x"\nkind = "tcut"\n[campaign]\npoints = "many"\n')
     with pytest.raises(StudyError, match=r"campaign\.points: expected int"):
         load_study(bad)
+    bad.write_text('[study]\nname = "x"\nkind = "tcut"\n[analysis]\nshape_bounds = "loose"\n')
+    with pytest.raises(StudyError, match=r"analysis\.shape_bounds must be 'free' or 'physical'"):
+        load_study(bad)
     bad.write_text('[study]\nname = "x"\nkind = "nope"\n')
     with pytest.raises(StudyError, match="study.kind"):
         load_study(bad)
