@@ -12,6 +12,11 @@ sampled exactly at any instant, and for an input that starts at t = 0 from nothi
 
     y(t) = sum_i r_i (exp(p_i t) - exp(lam t)) / (p_i - lam) + D x(t).
 
+Both are evaluated through E(t) = (exp(p t) - exp(lam t)) / (p - lam) = t exp(p t) phi1((lam - p) t),
+phi1(z) = (e^z - 1)/z, whose series is used for small |z|: where tau meets a real pole
+(p -> -1/tau) the two exponentials coincide, their coefficients diverge and cancel, and the
+direct form would lose about eps/|1 + p tau| (more in derivatives).
+
 A direct term D (H(s) -> D at high frequency) describes an ideal chain (D = 1, no poles).
 Units: poles and lam in rad/s (1/s), times in s.
 """
@@ -22,6 +27,43 @@ from dataclasses import dataclass
 import numpy as np
 
 from .transfer_function import TFParams
+
+
+PHI_SERIES = 0.5           # |z| below which phi1 and its derivative come from their series
+
+
+def _phi1(z):
+    """phi1(z) = (e^z - 1)/z and phi1'(z), for complex z with |z| < PHI_SERIES (series; ~1e-33 tail)."""
+    z = np.asarray(z, complex)
+    f, df = np.zeros_like(z), np.zeros_like(z)
+    term = np.ones_like(z)                         # z^k / (k + 1)!
+    for k in range(24):
+        f = f + term
+        df = df + term * (k + 1) / (k + 2)          # (k + 1) z^k / (k + 2)!
+        term = term * z / (k + 2)
+    return f, df
+
+
+def pole_term(p, lam, t, derivative: bool = False):
+    """E = (e^{p t} - e^{lam t}) / (p - lam) (s) and dE/dlam (s^2), exact also as lam -> p.
+
+    ``p``, ``lam`` complex (1/s) and ``t`` (s, >= 0) broadcast together.
+    """
+    p, lam, t = np.broadcast_arrays(np.asarray(p, complex), np.asarray(lam, complex), np.asarray(t, float))
+    d = p - lam
+    near = np.abs(d * t) < PHI_SERIES
+    ept = np.exp(p * t)
+    elt = np.exp(lam * t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        e = (ept - elt) / d
+        de = (e - t * elt) / d if derivative else None     # [(e^{pt} - e^{lam t}) - d t e^{lam t}] / d^2
+    if np.any(near):                                        # where the two exponentials (nearly) coincide
+        tn, en = t[near], ept[near]
+        f, df = _phi1(-d[near] * tn)
+        e[near] = tn * en * f
+        if derivative:
+            de[near] = tn * tn * en * df
+    return (e, de) if derivative else e
 
 
 @dataclass(frozen=True)
@@ -53,32 +95,37 @@ class RationalChain:
 
         ``lam`` of shape (n,) and ``t_s`` of shape (k,) give (n, k); zero for t < 0.
         """
-        t = np.asarray(t_s, float)[None, :, None]
-        lam = np.asarray(lam, complex).reshape(-1, 1, 1)
+        t = np.asarray(t_s, float)[None, :]
+        lam = np.asarray(lam, complex).reshape(-1, 1)
         tp = np.clip(t, 0.0, None)
-        y = self.direct * np.exp(lam[..., 0] * tp[..., 0])
-        if len(self.poles):
-            p = np.asarray(self.poles, complex)[None, None, :]
-            r = np.asarray(self.residues, complex)[None, None, :]
-            y = y + np.sum(r * (np.exp(p * tp) - np.exp(lam * tp)) / (p - lam), axis=-1)
-        return np.where(t[..., 0] < 0, 0.0, y)
+        y = self.direct * np.exp(lam * tp)
+        for p, r in zip(self.poles, self.residues):
+            y = y + r * pole_term(p, lam, tp)
+        return np.where(t < 0, 0.0, y)
 
-    def ringdown_response(self, t_s, tau_s) -> np.ndarray:
+    def ringdown_response(self, t_s, tau_s, derivative: bool = False):
         """Exact response (dimensionless, steady level 1) at times t (s) for decay times tau (s).
 
-        ``tau_s`` of shape (n,) and ``t_s`` of shape (k,) give (n, k).
+        ``tau_s`` of shape (n,) and ``t_s`` of shape (k,) or (n, k) give (n, k); with
+        ``derivative`` also d/dtau (1/s). Exact where tau meets a real pole (see the module notes).
         """
-        t = np.asarray(t_s, float)[None, :, None]
-        tau = np.asarray(tau_s, float).reshape(-1, 1, 1)
-        p = np.asarray(self.poles, complex)[None, None, :]
-        r = np.asarray(self.residues, complex)[None, None, :]
+        t = np.asarray(t_s, float)
+        t = t[None, :] if t.ndim == 1 else t
+        tau = np.asarray(tau_s, float).reshape(-1, 1)
         tp = np.clip(t, 0.0, None)
-        y = self.direct * np.exp(-tp[..., 0] / tau[..., 0])
-        if len(self.poles):
-            inv = 1.0 / (p + 1.0 / tau)
-            terms = r * (np.exp(p * tp) * (inv - 1.0 / p) - np.exp(-tp / tau) * inv)
-            y = y + np.real(terms.sum(-1))
-        return np.where(t[..., 0] < 0, self.dc_gain, y)
+        lam = -1.0 / tau
+        e = np.exp(lam * tp)
+        y = self.direct * e
+        dy = self.direct * e * tp / tau**2 if derivative else None
+        for p, r in zip(self.poles, self.residues):
+            # r [ (e^{pt} - e^{-t/tau}) / (p + 1/tau) - e^{pt}/p ];  dlam/dtau = 1/tau^2
+            out = pole_term(p, lam, tp, derivative=derivative)
+            term = out[0] if derivative else out
+            y = y + np.real(r * (term - np.exp(p * tp) / p))
+            if derivative:
+                dy = dy + np.real(r * out[1]) / tau**2
+        y = np.where(t < 0, self.dc_gain, np.real(y))
+        return (y, np.where(t < 0, 0.0, np.real(dy))) if derivative else y
 
     def impulse_response(self, t_s) -> np.ndarray:
         """h(t) in 1/s at times t (s), zero for t < 0 (the direct term's delta is omitted)."""

@@ -132,6 +132,9 @@ def cmd_linefit(args) -> int:
     if result["clipped_points"]:
         print(f"warning: {result['clipped_points']} clipped or saturated transients were left out of the "
               "spectrum (bayes-tfcrds validate lists them)", file=sys.stderr)
+    if result["unconverged_points"]:
+        print(f"warning: {result['unconverged_points']} decay-time fits did not converge and were left out of "
+              "the spectrum (bayes-tfcrds fit lists them as not-converged)", file=sys.stderr)
     if result["record_short_points"]:
         print(f"warning: {result['record_short_points']} decay times come from less than two decay times of "
               f"record after t_cut = {args.tcut[0]:g} s (offset and tau nearly degenerate)", file=sys.stderr)

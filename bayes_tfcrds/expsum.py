@@ -164,18 +164,20 @@ def chain_coefficients(chain, tau_s, t_first_s):
     return a, da, c, dc
 
 
-def chain_response(chain, t_s, tau_s, t_first_s):
-    """Dense g at times ``t_s`` (n, k) s >= t_first for rows with decay times ``tau_s`` (n,) s.
+NEAR_POLE = 0.05           # |1 + p tau| below which a row's sums are formed densely (see SumsModel)
 
-    Used only where residuals are kept; the fit itself never forms g.
+
+def chain_response(chain, t_s, tau_s, t_first_s, derivative: bool = False):
+    """Dense g (and dg/dtau, 1/s) at times ``t_s`` (n, k) s >= t_first for decay times ``tau_s`` (n,) s.
+
+    The chain's own exact response (``RationalChain.ringdown_response``), which stays exact where
+    tau meets a real pole. Used for residuals and for rows near a pole; the fit otherwise never
+    forms g. ``t_first_s`` (n,) s is each row's first fitted time (g is the same function).
     """
-    a, _, c, _ = chain_coefficients(chain, tau_s, t_first_s)
-    u = np.asarray(t_s, float) - np.asarray(t_first_s, float)[:, None]
-    p = np.asarray(chain.poles, complex)
-    g = a[:, None] * np.exp(-u / np.asarray(tau_s, float)[:, None])
-    if p.size:
-        g = g + np.real(np.einsum("rp,rpk->rk", c, np.exp(p[None, :, None] * u[:, None, :])))
-    return g
+    t = np.asarray(t_s, float)
+    if np.any(t < np.asarray(t_first_s, float)[:, None] - 1e-12):
+        raise ValueError("chain_response: times before a row's first fitted sample")
+    return chain.ringdown_response(t, tau_s, derivative=derivative)
 
 
 class SumsModel:
@@ -237,8 +239,40 @@ class SumsModel:
         m = self.mom[rows]
         return np.einsum("rk,rk->r", coef, m[:, :-1]), s * np.einsum("rk,rk->r", coef, m[:, 1:])
 
+    def _dense_near_pole(self, tau, rows):
+        """The seven sums formed from g and dg/dtau on the sample grid (rows with tau near a pole)."""
+        d, w = self.d, self.d.weight[rows]
+        u = d.dt * np.arange(d.n_blocks * d.block)
+        t = self.t_first[rows, None] + u[None, :]
+        g, dg = chain_response(self.chain, t, tau, self.t_first[rows], derivative=True)
+        inside = np.arange(u.size)[None, :] < d.n[rows, None]
+        g, dg = np.where(inside, g, 0.0), np.where(inside, dg, 0.0)
+        wy = d.data[rows].reshape(rows.size, -1)                          # w y, zero-padded
+        return (w * g.sum(-1), w * np.einsum("rj,rj->r", g, g), np.einsum("rj,rj->r", wy, g),
+                w * dg.sum(-1), w * np.einsum("rj,rj->r", dg, g), np.einsum("rj,rj->r", wy, dg),
+                w * np.einsum("rj,rj->r", dg, dg))
+
     def __call__(self, tau, rows):
-        """(sg, sgg, sgy, sd, sdg, sdy, sdd) per row: weighted sums of g, dg/dtau and y."""
+        """(sg, sgg, sgy, sd, sdg, sdy, sdd) per row: weighted sums of g, dg/dtau and y.
+
+        Where tau is within NEAR_POLE of a real chain pole (|1 + p tau| small) the closed sums
+        lose about eps/|1 + p tau|^4 to cancellation between the two coincident exponentials;
+        those rows (rare: one tau value per pole) are summed densely over their samples instead.
+        """
+        near = np.zeros(rows.size, bool)
+        if self.p.size:
+            near = np.min(np.abs(1.0 + self.p[None, :] * tau[:, None]), -1) < NEAR_POLE
+        if np.any(near):
+            out = [np.empty(rows.size) for _ in range(7)]
+            for o, v in zip(out, self._dense_near_pole(tau[near], rows[near])):
+                o[near] = v
+            if np.any(~near):
+                for o, v in zip(out, self._closed(tau[~near], rows[~near])):
+                    o[~near] = v
+            return tuple(out)
+        return self._closed(tau, rows)
+
+    def _closed(self, tau, rows):
         d, w = self.d, self.d.weight[rows]
         a, da, c, dc = self.coefficients(tau, rows)
         it2 = 1.0 / tau**2

@@ -78,7 +78,10 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
         fits = fit_config(config, [t_cut_s], method=method, window=window, calibration=calibration)
     except AnalysisError as exc:
         raise LineFitError(str(exc)) from exc
-    spec = crds_spectrum(fits.nu_hz, fits.tau_s[:, 0], fits.tau_u_s[:, 0])
+    # a decay time whose fit did not converge is not a measurement: left out and counted
+    unconverged = ~fits.converged[:, 0] & np.isfinite(fits.tau_s[:, 0])
+    tau = np.where(unconverged, np.nan, fits.tau_s[:, 0])
+    spec = crds_spectrum(fits.nu_hz, tau, fits.tau_u_s[:, 0])
     if spec.nu_hz.size < 8:
         raise LineFitError(f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}")
     lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz, physical_bounds=physical_bounds)
@@ -104,6 +107,7 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
         "shape_at_bound": [n for n in lf.at_bound if n in PHYSICAL_NONNEGATIVE],
         "n_points": int(spec.nu_hz.size),
         "clipped_points": int(np.sum(fits.clipped)),
+        "unconverged_points": int(np.sum(unconverged)),
         # decays with less than two decay times of record after t_cut (offset and tau nearly degenerate)
         "record_short_points": int(sum(fits.status(i, 0) == "record-short" for i in range(fits.nu_hz.size))),
     }

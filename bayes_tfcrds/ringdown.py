@@ -152,6 +152,9 @@ def _dense_sums(model, y, wm):
     return sums
 
 
+CHI2_CANCEL = 1e-9          # chi2 / y'Wy below which the closed-form chi2 is recomputed from residuals
+
+
 def _gauss_newton(sums, s1_all, sy_all, tau0, max_iter=50, rtol=1e-9):
     """Damped Gauss-Newton on tau with B, b projected out (Kaufman's variable projection).
 
@@ -250,8 +253,20 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
         det = s1 * sgg - sg * sg
         amp = (s1 * sgy - sg * data.sum_wy) / det
         off = (sgg * data.sum_wy - sg * sgy) / det
-        # chi2 = y'Wy - beta' X'Wy at the least-squares beta (no residual array needed)
-        chi2 = np.maximum(data.sum_wyy - amp * sgy - off * data.sum_wy, 0.0)
+        # chi2 = y'Wy - beta' X'Wy at the least-squares beta (no residual array needed); it carries
+        # an absolute error of a few eps y'Wy, so rows whose chi2 is below CHI2_CANCEL y'Wy
+        # (very high signal-to-noise: a relative error above ~1e-6) get it from their residuals
+        chi2 = data.sum_wyy - amp * sgy - off * data.sum_wy
+        redo = ~(chi2 > CHI2_CANCEL * data.sum_wyy)
+        if np.any(redo):
+            rows = np.nonzero(redo)[0]
+            if method == "tf-crds" and not isinstance(model, SumsModel):
+                g = dense(tau[rows], rows, derivative=False)
+            else:
+                g = model.response(t, tau[rows], rows)
+            inside = np.arange(t.size)[None, :] >= first[rows, None]
+            r = np.where(inside, sig[rows_of[rows]] - amp[rows, None] * g - off[rows, None], 0.0)
+            chi2[rows] = w[rows] * np.einsum("rj,rj->r", r, r)
         fisher = np.empty((n, 3, 3))
         fisher[:, 0, 0], fisher[:, 0, 1], fisher[:, 1, 1] = sgg, sg, s1
         fisher[:, 0, 2], fisher[:, 1, 2], fisher[:, 2, 2] = amp * sdg, amp * sd, amp * amp * sdd

@@ -360,6 +360,13 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
             for a in range(len(refd)):
                 for b in range(a + 1, len(refd)):
                     corr[(f"H: {refd[a]} (refined on ring-downs)", f"H: {refd[b]} (refined on ring-downs)")] = float(rc[a, b])
+        # GUM 5.1.2: the second-order term's own variance, 1/2 tr((Hess Sigma)^2) for Gaussian
+        # H draws (its mean shift, 1/2 tr(Hess Sigma), is already in the mean of the draws)
+        sig_h = np.atleast_2d(np.cov(h_draws.T))
+        hs = hess_a @ sig_h
+        comps.append(Component("H: curvature of A (second order)", None, float(np.sqrt(0.5 * np.trace(hs @ hs))), 1.0,
+                               "Hz/m", note="Type A: 1/2 tr((d2A/dH2 Sigma_H)^2), GUM 5.1.2; the first-order H rows "
+                                            "above miss it"))
     spread = max(area_by_tcut.values()) - min(area_by_tcut.values())
     comps.append(Component("t_cut choice", None, float(spread / np.sqrt(12)), 1.0, "Hz/m",
                            note=f"Type B: rectangular over the A(t_cut) range, t_cut = "

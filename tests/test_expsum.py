@@ -122,3 +122,79 @@ def test_letter_window_and_fractional_order_keep_the_fft_path():
     frac = fit_transients(T, y, [3e-6], "tf-crds", TFParams(**{**D2_LIKE.__dict__, "n_r": 1.9}), "extinction",
                           noise_v=[1e-4])
     assert np.isfinite(frac.tau_s[0]) and frac.converged[0]
+
+
+# --- where tau meets a real pole of the chain (p -> -1/tau) ---------------------------------
+# The two exponentials of the closed form coincide there and their coefficients diverge and
+# cancel; the chain's response and the fit's sums must stay exact (review finding: a fit with
+# |1 + p tau| <= 1e-4 used to return NaN).
+SLOW = TFParams(f_c_hz=1.938e4, a_r=19.28, f_r_hz=7e6, gamma_r=0.7, n_r=2.0, variant="causal")   # letter-D3
+
+
+def _tau_at_real_pole(chain):
+    p = min(chain.poles, key=lambda q: abs(complex(q).imag))
+    return -1.0 / complex(p).real
+
+
+def _quadrature_response(chain, t, tau):
+    """D x(t) + int_0^inf h(s) x(t - s) ds by adaptive quadrature: independent of the closed form."""
+    from scipy import integrate
+    h = lambda s: float(chain.impulse_response(np.array([s]))[0])
+    x = lambda v: 1.0 if v < 0 else np.exp(-v / tau)
+    def q(f, lo, hi):
+        cuts = [lo] + [v for v in (1e-6, 50e-6) if lo < v < hi] + [hi]
+        return sum(integrate.quad(f, a, b, limit=400, epsabs=1e-15, epsrel=1e-13)[0] for a, b in zip(cuts, cuts[1:]))
+    return chain.direct * x(t) + (q(lambda s: h(s) * x(t - s), 0.0, t) if t > 0 else 0.0) + q(h, t, 600e-6)
+
+
+@pytest.mark.parametrize("delta", [0.0, 1e-9, -1e-5, 1e-3, 0.3])
+def test_ringdown_response_is_exact_at_a_real_pole(delta):
+    chain = chain_from_tf(SLOW)
+    tau = _tau_at_real_pole(chain) * (1 + delta)
+    ts = np.array([0.0, 0.3e-6, 2e-6, 8e-6, 30e-6])
+    g, dg = chain.ringdown_response(ts, [tau], derivative=True)
+    ref = [_quadrature_response(chain, t, tau) for t in ts]
+    # quadrature to ~1e-13 absolute; the closed form was off by ~eps/|1 + p tau| before
+    np.testing.assert_allclose(g[0], ref, rtol=0, atol=1e-12)
+    h = 1e-5 * tau                                     # central difference: O(h^2) ~ 1e-10 relative
+    fd = (chain.ringdown_response(ts, [tau + h]) - chain.ringdown_response(ts, [tau - h])) / (2 * h)
+    np.testing.assert_allclose(dg, fd, rtol=0, atol=1e-8 * np.max(np.abs(dg)))
+
+
+def test_fits_with_tau_at_a_real_pole_converge_to_the_truth():
+    chain = chain_from_tf(SLOW)
+    tau_p = _tau_at_real_pole(chain)
+    taus = tau_p * (1 + np.array([0.0, 1e-6, -1e-4, 1e-3, 3e-2]))
+    t = T0 + DT * np.arange(16384)
+    y = 2e-3 + 0.6 * chain.ringdown_response(t, taus)
+    tc = np.full(taus.size, 4e-6)
+    f = fit_transients(t, y, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(taus.size, 1e-4))
+    assert np.all(f.converged)
+    np.testing.assert_allclose(f.tau_s, taus, rtol=1e-10)      # noiseless exact data: to rounding
+    rng = np.random.default_rng(5)
+    sigma = 1e-4
+    noisy = y + sigma * rng.standard_normal(y.shape)
+    fast = fit_transients(t, noisy, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(taus.size, sigma))
+    dense = fit_transients(t, noisy, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(y.shape, sigma))
+    assert np.all(fast.converged) and np.all(np.isfinite(fast.tau_u_s))
+    # against the FFT path (a different evaluation of the same model): its discretisation, ~1e-3 u
+    assert np.max(np.abs(fast.tau_s - dense.tau_s) / dense.tau_u_s) < 1e-2
+    np.testing.assert_allclose(fast.tau_u_s, dense.tau_u_s, rtol=1e-4)
+
+
+@pytest.mark.parametrize("method", ["crds", "tf-crds"])
+def test_chi2_stays_right_at_very_high_signal_to_noise(method):
+    # chi2 = y'Wy - beta'X'Wy carries ~eps y'Wy; at sigma = 1e-8 V that is ~1e4 x chi2, so the
+    # rows that need it get chi2 from their residuals instead
+    rng = np.random.default_rng(2)
+    chain = chain_from_tf(D2_LIKE)
+    taus = np.array([3e-6, 9e-6])
+    sigma = 1e-8
+    y = (1.0 + chain.ringdown_response(T, taus) if method == "tf-crds"
+         else 1.0 + np.exp(-np.clip(T, 0, None) / taus[:, None])) + sigma * rng.standard_normal((2, K))
+    f = fit_transients(T, y, [2e-6, 2e-6], method, D2_LIKE, "extinction", noise_v=np.full(2, sigma),
+                       keep_residuals=True)
+    direct = (f.residuals_v**2).sum(-1) / sigma**2
+    np.testing.assert_allclose(f.chi2, direct, rtol=1e-6)
+    # and chi2/dof is what white noise gives: 1 +/- 5 sd of sqrt(2/dof)
+    assert np.all(np.abs(f.chi2 / f.dof - 1) < 5 * np.sqrt(2 / f.dof))
