@@ -300,7 +300,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds", help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
+                    help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
     sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
                     help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
     sp.add_argument("--tcut", type=_floats, default=[2e-6, 4e-6, 8e-6], help="t_cut values in s, comma-separated")
@@ -323,7 +324,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = common(sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds", help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
+                    help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
     sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
                     help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
@@ -336,7 +338,8 @@ def build_parser() -> argparse.ArgumentParser:
     sp = common(sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds", help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
+    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
+                    help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
     sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
                     help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")

@@ -167,19 +167,6 @@ def chain_coefficients(chain, tau_s, t_first_s):
 NEAR_POLE = 0.05           # |1 + p tau| below which a row's sums are formed densely (see SumsModel)
 
 
-def chain_response(chain, t_s, tau_s, t_first_s, derivative: bool = False):
-    """Dense g (and dg/dtau, 1/s) at times ``t_s`` (n, k) s >= t_first for decay times ``tau_s`` (n,) s.
-
-    The chain's own exact response (``RationalChain.ringdown_response``), which stays exact where
-    tau meets a real pole. Used for residuals and for rows near a pole; the fit otherwise never
-    forms g. ``t_first_s`` (n,) s is each row's first fitted time (g is the same function).
-    """
-    t = np.asarray(t_s, float)
-    if np.any(t < np.asarray(t_first_s, float)[:, None] - 1e-12):
-        raise ValueError("chain_response: times before a row's first fitted sample")
-    return chain.ringdown_response(t, tau_s, derivative=derivative)
-
-
 class SumsModel:
     """The seven weighted sums of the Gauss-Newton step for g = a e^{-u/tau} + sum_p c_p e^{p u}.
 
@@ -244,7 +231,7 @@ class SumsModel:
         d, w = self.d, self.d.weight[rows]
         u = d.dt * np.arange(d.n_blocks * d.block)
         t = self.t_first[rows, None] + u[None, :]
-        g, dg = chain_response(self.chain, t, tau, self.t_first[rows], derivative=True)
+        g, dg = self.chain.ringdown_response(t, tau, derivative=True)
         inside = np.arange(u.size)[None, :] < d.n[rows, None]
         g, dg = np.where(inside, g, 0.0), np.where(inside, dg, 0.0)
         wy = d.data[rows].reshape(rows.size, -1)                          # w y, zero-padded
@@ -311,6 +298,6 @@ class SumsModel:
         if self.chain is None:
             g = np.exp(-np.clip(t - self.t_cut[rows, None], 0, None) / tau[:, None])
         else:
-            g = chain_response(self.chain, np.broadcast_to(np.clip(t, self.t_first[rows, None], None),
-                                                           (rows.size, t.shape[1])), tau, self.t_first[rows])
+            g = self.chain.ringdown_response(np.broadcast_to(np.clip(t, self.t_first[rows, None], None),
+                                                             (rows.size, t.shape[1])), tau)
         return np.where(t >= self.t_first[rows, None] - 1e-3 * self.d.dt, g, 0.0)

@@ -256,17 +256,20 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
         # chi2 = y'Wy - beta' X'Wy at the least-squares beta (no residual array needed); it carries
         # an absolute error of a few eps y'Wy, so rows whose chi2 is below CHI2_CANCEL y'Wy
         # (very high signal-to-noise: a relative error above ~1e-6) get it from their residuals
-        chi2 = data.sum_wyy - amp * sgy - off * data.sum_wy
-        redo = ~(chi2 > CHI2_CANCEL * data.sum_wyy)
-        if np.any(redo):
-            rows = np.nonzero(redo)[0]
+        def residuals(rows):
+            """y - B g - b on each row's fitted samples, zero before them (V)."""
             if method == "tf-crds" and not isinstance(model, SumsModel):
                 g = dense(tau[rows], rows, derivative=False)
             else:
                 g = model.response(t, tau[rows], rows)
             inside = np.arange(t.size)[None, :] >= first[rows, None]
-            r = np.where(inside, sig[rows_of[rows]] - amp[rows, None] * g - off[rows, None], 0.0)
-            chi2[rows] = w[rows] * np.einsum("rj,rj->r", r, r)
+            return np.where(inside, sig[rows_of[rows]] - amp[rows, None] * g - off[rows, None], 0.0)
+
+        chi2 = data.sum_wyy - amp * sgy - off * data.sum_wy
+        redo = np.nonzero(~(chi2 > CHI2_CANCEL * data.sum_wyy))[0]
+        if redo.size:
+            r = residuals(redo)
+            chi2[redo] = w[redo] * np.einsum("rj,rj->r", r, r)
         fisher = np.empty((n, 3, 3))
         fisher[:, 0, 0], fisher[:, 0, 1], fisher[:, 1, 1] = sgg, sg, s1
         fisher[:, 0, 2], fisher[:, 1, 2], fisher[:, 2, 2] = amp * sdg, amp * sd, amp * amp * sdd
@@ -275,13 +278,7 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
         dof = n_used - 3
         resid = None
         if keep_residuals:
-            rows = np.arange(n)
-            if method == "tf-crds" and not isinstance(model, SumsModel):
-                g = dense(tau, rows, derivative=False)
-            else:
-                g = model.response(t, tau, rows)
-            mask = np.arange(t.size)[None, :] >= first[:, None]
-            resid = np.where(mask, sig[rows_of] - amp[:, None] * g - off[:, None], 0.0)
+            resid = residuals(np.arange(n))
         if noise is None:
             s2 = chi2 / np.maximum(dof, 1)
             noise_used = np.sqrt(s2)
