@@ -1,2 +1,127 @@
-"""bayes-tfcrds: transfer-function-corrected CRDS with honest uncertainty budgets."""
-__version__ = "0.1.0"
+"""bayes-tfcrds: transfer-function-corrected CRDS with honest uncertainty budgets.
+
+The pipeline, one subpackage per stage (imports go one way, down this list)::
+
+    core        constants and units, linear algebra, GUM arithmetic, Quantity
+    output      atomic files, plotting backend, HTML/PDF reports
+    bundle      the HDF5 measurement bundle (FORMAT.md): records, reader, writer, summary
+    physics     H(f), the detection chain, the ring-down forward model, line shapes, line data
+    simulate    the simulator of the whole experiment
+    fit         beat note, ring-downs, Appendix B refinement, H calibration, spectra, line fits
+    inference   emcee runner, diagnostics, chain stores, posterior densities
+    uncertainty propagation of H into tau and A, the line-area budget and its outputs
+    discover    discovery of the effect a model of the experiment is missing
+    studies     declarative studies, the coverage study and the demo
+    cli         ``bayes-tfcrds``: parses, calls, prints
+
+The main job in Python::
+
+    import numpy as np
+    import bayes_tfcrds as bt
+
+    bundle, truth = bt.simulate_campaign(["letter-D2"], np.random.default_rng(7))
+    line = bt.analyse_line(bundle, bundle.configs["D2"], method="tf-crds", t_cut_s=4e-6)
+    print(line.line_area, line.ratio)
+
+Names are imported on first use, so ``import bayes_tfcrds`` (and the CLI) start fast.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING
+
+from bayes_tfcrds._version import __version__
+
+#: public name -> the module that defines it
+_API = {
+    "load_bundle": "bayes_tfcrds.bundle.reader",
+    "load_truth": "bayes_tfcrds.bundle.reader",
+    "validate_file": "bayes_tfcrds.bundle.reader",
+    "BundleError": "bayes_tfcrds.bundle.records",
+    "Bundle": "bayes_tfcrds.bundle.records",
+    "save_bundle": "bayes_tfcrds.bundle.writer",
+    "TFParams": "bayes_tfcrds.physics.transfer_function",
+    "transfer_function": "bayes_tfcrds.physics.transfer_function",
+    "Campaign": "bayes_tfcrds.simulate.campaign",
+    "simulate_campaign": "bayes_tfcrds.simulate.campaign",
+    "calibrate": "bayes_tfcrds.fit.h_calibration",
+    "Calibration": "bayes_tfcrds.fit.h_calibration",
+    "fit_ringdowns": "bayes_tfcrds.fit.ringdown",
+    "RingdownFits": "bayes_tfcrds.fit.ringdown",
+    "fit_line": "bayes_tfcrds.fit.line",
+    "LineFit": "bayes_tfcrds.fit.line",
+    "analyse_line": "bayes_tfcrds.fit.line_analysis",
+    "LineAnalysis": "bayes_tfcrds.fit.line_analysis",
+    "Quantity": "bayes_tfcrds.core.quantity",
+    "BudgetOptions": "bayes_tfcrds.uncertainty.line_budget",
+    "BudgetResult": "bayes_tfcrds.uncertainty.line_budget",
+    "run_budget": "bayes_tfcrds.uncertainty.line_budget",
+    "write_outputs": "bayes_tfcrds.uncertainty.outputs",
+    "discover": "bayes_tfcrds.discover.workflow",
+    "DiscoveryResult": "bayes_tfcrds.discover.workflow",
+    "run_study": "bayes_tfcrds.studies.registry",
+    "run_demo": "bayes_tfcrds.studies.demo",
+}
+
+__all__ = [
+    "__version__",
+    "load_bundle",
+    "load_truth",
+    "validate_file",
+    "BundleError",
+    "Bundle",
+    "save_bundle",
+    "TFParams",
+    "transfer_function",
+    "Campaign",
+    "simulate_campaign",
+    "calibrate",
+    "Calibration",
+    "fit_ringdowns",
+    "RingdownFits",
+    "fit_line",
+    "LineFit",
+    "analyse_line",
+    "LineAnalysis",
+    "Quantity",
+    "BudgetOptions",
+    "BudgetResult",
+    "run_budget",
+    "write_outputs",
+    "discover",
+    "DiscoveryResult",
+    "run_study",
+    "run_demo",
+]
+
+
+def __getattr__(name: str):
+    module = _API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'bayes_tfcrds' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value           # later look-ups skip this function
+    return value
+
+
+def __dir__():
+    return sorted(__all__)
+
+
+if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
+    from bayes_tfcrds.bundle.reader import load_bundle, load_truth, validate_file
+    from bayes_tfcrds.bundle.records import Bundle, BundleError
+    from bayes_tfcrds.bundle.writer import save_bundle
+    from bayes_tfcrds.core.quantity import Quantity
+    from bayes_tfcrds.discover.workflow import DiscoveryResult, discover
+    from bayes_tfcrds.fit.h_calibration import Calibration, calibrate
+    from bayes_tfcrds.fit.line import LineFit, fit_line
+    from bayes_tfcrds.fit.line_analysis import LineAnalysis, analyse_line
+    from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns
+    from bayes_tfcrds.physics.transfer_function import TFParams, transfer_function
+    from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+    from bayes_tfcrds.studies.demo import run_demo
+    from bayes_tfcrds.studies.registry import run_study
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, BudgetResult, run_budget
+    from bayes_tfcrds.uncertainty.outputs import write_outputs

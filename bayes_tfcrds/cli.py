@@ -6,13 +6,13 @@ bad input as one clear message naming what is wrong, with exit status 1 or 2.
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from pathlib import Path
 
 import numpy as np
 
-from . import __version__
+from bayes_tfcrds._version import __version__
+from bayes_tfcrds.output.files import atomic_write_text
 
 
 def _floats(text: str):
@@ -40,29 +40,22 @@ def _config(bundle, name):
 
 
 def _load(path):
-    from .bundle import BundleError, load_bundle
+    from bayes_tfcrds.bundle.records import BundleError
+    from bayes_tfcrds.bundle.reader import load_bundle
     try:
         return load_bundle(path)
     except BundleError as exc:
         raise SystemExit(f"error: {exc}")
 
 
-def atomic_write_text(path: Path, text: str):
-    """Write text to ``path`` through a temporary name and a rename (never half-written)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
 
 def cmd_validate(args) -> int:
-    from .bundle import main_validate
+    from bayes_tfcrds.bundle.summary import main_validate
     return main_validate(args.file)
 
 
 def cmd_fit(args) -> int:
-    from .analysis import AnalysisError, calibrate, fit_config
+    from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     cal = None
@@ -76,13 +69,7 @@ def cmd_fit(args) -> int:
     except (AnalysisError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    import io
-    buf = io.StringIO()
-    w = csv.writer(buf)
-    w.writerow(["nu_hz", "t_cut_s", "tau_s", "tau_u_s", "chi2_red", "status"])
-    for nu, tc, tau, tau_u, chi2r, status in fits.rows():
-        w.writerow([f"{nu:.3f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status])
-    atomic_write_text(Path(args.output), buf.getvalue())
+    atomic_write_text(Path(args.output), fits.to_csv())
     n_clip = int(fits.clipped.sum())
     n_sat = int(np.sum(config.ringdowns.saturated))
     n_short = sum(row[-1] == "record-short" for row in fits.rows())
@@ -97,8 +84,8 @@ def cmd_fit(args) -> int:
 
 
 def cmd_simulate(args) -> int:
-    from .bundle import save_bundle
-    from .simulate import Campaign, parse_effect, simulate_campaign
+    from bayes_tfcrds.bundle.writer import save_bundle
+    from bayes_tfcrds.simulate.campaign import Campaign, parse_effect, simulate_campaign
     effects = {}
     try:
         for text in args.effect or []:
@@ -119,7 +106,7 @@ def cmd_simulate(args) -> int:
 
 def cmd_linefit(args) -> int:
     import json
-    from .linefit import LineFitError, analyse_line
+    from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     try:
@@ -128,89 +115,62 @@ def cmd_linefit(args) -> int:
     except (LineFitError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
-    atomic_write_text(Path(args.output), json.dumps(result, indent=2) + "\n")
-    if result["clipped_points"]:
-        print(f"warning: {result['clipped_points']} clipped or saturated transients were left out of the "
-              "spectrum (bayes-tfcrds validate lists them)", file=sys.stderr)
-    if result["unconverged_points"]:
-        print(f"warning: {result['unconverged_points']} decay-time fits did not converge and were left out of "
-              "the spectrum (bayes-tfcrds fit lists them as not-converged)", file=sys.stderr)
-    if result["record_short_points"]:
-        print(f"warning: {result['record_short_points']} decay times come from less than two decay times of "
-              f"record after t_cut = {args.tcut[0]:g} s (offset and tau nearly degenerate)", file=sys.stderr)
-    if result["unphysical_shape"]:
-        print(f"warning: {', '.join(result['unphysical_shape'])} ended below 0 (on the profile's continuation): "
-              "the line shape is not physical, often a sign that the model of the experiment is wrong "
-              "(plain CRDS of a distorted chain?); --shape-bounds physical holds them at 0", file=sys.stderr)
-    if result["shape_at_bound"]:
-        print(f"note: {', '.join(result['shape_at_bound'])} held at 0 by --shape-bounds physical", file=sys.stderr)
-    la, ra = result["line_area"], result["reference_area"]
-    print(f"A = {la['value']:.6e} +/- {la['u']:.2e} {la['unit']}; "
+    atomic_write_text(Path(args.output), json.dumps(result.to_dict(), indent=2) + "\n")
+    for line in _linefit_warnings(result, args.tcut[0]):
+        print(line, file=sys.stderr)
+    la, ra, q = result.line_area, result.reference_area, result.ratio
+    print(f"A = {la.value:.6e} +/- {la.u:.2e} {la.unit}; "
           + ("no CMDS reference in this configuration" if ra is None else
-             f"A_ref = {ra['value']:.6e} +/- {ra['u']:.2e}; "
-             f"A/A_ref = {result['ratio']['value']:.5f} +/- {result['ratio']['u']:.5f}"), file=sys.stderr)
+             f"A_ref = {ra.value:.6e} +/- {ra.u:.2e}; "
+             f"A/A_ref = {q.value:.5f} +/- {q.u:.5f}"), file=sys.stderr)
     return 0
+
+
+def _linefit_warnings(result, t_cut_s: float) -> list[str]:
+    """What a reader of a line fit must be told: points left out, short records, the shape."""
+    lines = []
+    if result.clipped_points:
+        lines.append(f"warning: {result.clipped_points} clipped or saturated transients were left out of the "
+                     "spectrum (bayes-tfcrds validate lists them)")
+    if result.unconverged_points:
+        lines.append(f"warning: {result.unconverged_points} decay-time fits did not converge and were left out of "
+                     "the spectrum (bayes-tfcrds fit lists them as not-converged)")
+    if result.record_short_points:
+        lines.append(f"warning: {result.record_short_points} decay times come from less than two decay times of "
+                     f"record after t_cut = {t_cut_s:g} s (offset and tau nearly degenerate)")
+    if result.unphysical_shape:
+        lines.append(f"warning: {', '.join(result.unphysical_shape)} ended below 0 (on the profile's continuation): "
+                     "the line shape is not physical, often a sign that the model of the experiment is wrong "
+                     "(plain CRDS of a distorted chain?); --shape-bounds physical holds them at 0")
+    if result.shape_at_bound:
+        lines.append(f"note: {', '.join(result.shape_at_bound)} held at 0 by --shape-bounds physical")
+    return lines
 
 
 def cmd_demo(args) -> int:
     """Simulate a letter-like campaign (D1-D4) and analyse it: CRDS vs TF-CRDS against CMDS."""
-    import json
-    from dataclasses import replace
-    from .bundle import load_bundle, save_bundle
-    from .simulate import Campaign, simulate_campaign, spectral_points
-    from .linefit import analyse_line
-    from .analysis import calibrate
-    out = Path(args.output)
-    out.mkdir(parents=True, exist_ok=True)
-    campaign = Campaign() if not args.quick else replace(Campaign(), n_points=41, n_samples=8192, n_avg=20)
-    presets = ["letter-D1", "letter-D2", "letter-D3", "letter-D4"]
-    print(f"simulating {', '.join(presets)} (seed {args.seed}, {spectral_points(campaign).size} cavity modes x "
-          f"{campaign.n_samples} samples, {campaign.n_avg} averages) ...", file=sys.stderr)
-    bundle, truth = simulate_campaign(presets, np.random.default_rng(args.seed), campaign)
-    path = out / "campaign.h5"
-    save_bundle(bundle, path, truth=truth)
-    bundle = load_bundle(path)
-    results = []
-    # The letter reads its CRDS line fits as physical line shapes (Gamma2, nu_VC >= 0), and so does
-    # the demo: on the distorted D3/D4 spectra the free estimator would follow the distortion to
-    # nu_VC < 0 (the column names any shape parameter the bound holds at 0). TF-CRDS fits are the
-    # same either way: the bounds are not reached when the model is right.
-    lines = ["| config | method | t_cut (us) | A (cm^-2) | A/A_ref - 1 (%) | u (%) | chi2_red | held at 0 |",
-             "|---|---|---|---|---|---|---|---|"]
-    for name, cfg in bundle.configs.items():
-        cal = calibrate(cfg)
-        for method in ("crds", "tf-crds"):
-            for tc in (4e-6, 8e-6):
-                r = analyse_line(bundle, cfg, method=method, t_cut_s=tc, physical_bounds=True,
-                                 calibration=cal if method == "tf-crds" else None)
-                results.append(r)
-                held = ", ".join(r["shape_at_bound"]) or "-"
-                lines.append(f"| {name} | {method} | {tc * 1e6:g} | {r['line_area']['value']:.6e} | "
-                             f"{100 * (r['ratio']['value'] - 1):+.3f} | {100 * r['ratio']['u']:.3f} | "
-                             f"{r['chi2_red']:.2f} | {held} |")
-                print(f"  {name} {method} t_cut {tc * 1e6:g} us done", file=sys.stderr)
-    atomic_write_text(out / "results.json", json.dumps(results, indent=2) + "\n")
-    atomic_write_text(out / "summary.md", "# bayes-tfcrds demo: simulated letter campaign\n\n" + "\n".join(lines) + "\n")
-    print("\n".join(lines))
-    print(f"\nwrote {path}, {out / 'results.json'}, {out / 'summary.md'}", file=sys.stderr)
+    from bayes_tfcrds.studies.demo import run_demo
+    result = run_demo(args.output, seed=args.seed, quick=args.quick,
+                      log=lambda line: print(line, file=sys.stderr))
+    print("\n".join(result.summary_lines()))
+    print(f"\nwrote {result.bundle_path}, {result.results_path}, {result.summary_path}", file=sys.stderr)
     return 0
 
 
 def cmd_budget(args) -> int:
-    from .uncertainty import BudgetOptions, run_budget, write_outputs
-    from .linefit import LineFitError
-    from .analysis import AnalysisError
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
+    from bayes_tfcrds.uncertainty.outputs import write_outputs
+    from bayes_tfcrds.fit.line_analysis import LineFitError
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     opts = BudgetOptions(method=args.method, window=args.window, t_cut_s=args.tcut[0], profile=args.profile)
     if args.steps is not None or args.max_steps is not None:
-        from dataclasses import replace
-        n_steps = opts.n_steps if args.steps is None else args.steps
-        max_steps = max(n_steps * 8, opts.max_steps) if args.max_steps is None else args.max_steps
-        if not 1 <= n_steps <= max_steps:
-            print(f"error: need 1 <= --steps ({n_steps}) <= --max-steps ({max_steps})", file=sys.stderr)
+        try:
+            opts = opts.with_steps(args.steps, args.max_steps)
+        except ValueError as exc:
+            print(f"error: {exc}", file=sys.stderr)
             return 2
-        opts = replace(opts, n_steps=n_steps, max_steps=max_steps)
     try:
         try:
             res = run_budget(bundle, config, opts, np.random.default_rng(args.seed), outdir=args.output,
@@ -223,19 +183,19 @@ def cmd_budget(args) -> int:
         print(f"\ninterrupted: the chains sampled so far are kept in {Path(args.output) / 'chains_*.h5'}; "
               "run the same command again to resume (same seed, same result)", file=sys.stderr)
         return 130
-    s = res.summary
     print(res.budget_a.to_markdown())
-    if s["status"] != "ok":
-        print(f"FAILED: {s['status']} (diagnostics: {s['diagnostics']['runs']})", file=sys.stderr)
+    if not res.passed:
+        print(f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})", file=sys.stderr)
         return 3
-    print(f"\nA = {s['line_area']['value']:.6e} +/- {s['line_area']['u']:.2e} cm^-2;  "
-          f"A/A_ref = {s['ratio']['value']:.5f} +/- {s['ratio']['u']:.5f};  E_n = {s['en']:.2f};  "
-          f"S = {s['intensity']['value']:.5e} +/- {s['intensity']['u']:.2e} cm/molecule", file=sys.stderr)
+    a, q, s = res.line_area, res.ratio, res.intensity
+    print(f"\nA = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = {res.en:.2f};  "
+          f"S = {s.value:.5e} +/- {s.u:.2e} cm/molecule", file=sys.stderr)
     return 0
 
 
 def cmd_study(args) -> int:
-    from .study import StudyError, run_study
+    from bayes_tfcrds.studies.registry import run_study
+    from bayes_tfcrds.studies.spec import StudyError
     from concurrent.futures import ProcessPoolExecutor
     try:
         if args.workers > 1:
@@ -252,12 +212,13 @@ def cmd_study(args) -> int:
 
 
 def cmd_discover(args) -> int:
-    from .discover import DEFAULT_T_CUTS, discover, parse_model, write_report
+    from bayes_tfcrds.discover.workflow import DISCOVERY_T_CUTS, discover, parse_model
+    from bayes_tfcrds.discover.report import write_report
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     try:
         start = parse_model(args.start)
-        result = discover(bundle, config.name, start, t_cuts=args.tcut or DEFAULT_T_CUTS, threshold=args.threshold,
+        result = discover(bundle, config.name, start, t_cuts=args.tcut or DISCOVERY_T_CUTS, threshold=args.threshold,
                           progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)))
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -277,27 +238,24 @@ class _HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from .simulate import Campaign
-    from .uncertainty import BudgetOptions
-    p = argparse.ArgumentParser(prog="bayes-tfcrds",
-                                description="Transfer-function-corrected CRDS with honest uncertainty budgets. "
-                                            "The data contract (HDF5 measurement bundle) is FORMAT.md, shipped in "
-                                            "bayes_tfcrds/data/.")
-    p.add_argument("--version", action="version", version=f"bayes-tfcrds {__version__}")
-    sub = p.add_subparsers(dest="command", required=True)
+def _common(sp, seed=0, note=""):
+    """Options every command has (``--seed``), and help that shows defaults."""
+    sp.formatter_class = _HelpWithDefaults
+    sp.add_argument("--seed", type=int, default=seed, help="random seed" + note)
+    return sp
 
-    def common(sp, seed=0, note=""):
-        sp.formatter_class = _HelpWithDefaults
-        sp.add_argument("--seed", type=int, default=seed, help="random seed" + note)
-        return sp
 
-    sp = common(sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
+def _add_validate(sub) -> None:
+    """The ``validate`` command's options."""
+    sp = _common(sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
                 note=" (validate draws no random numbers)")
     sp.add_argument("file", help="measurement bundle (HDF5)")
     sp.set_defaults(func=cmd_validate)
 
-    sp = common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
+
+def _add_fit(sub) -> None:
+    """The ``fit`` command's options."""
+    sp = _common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
@@ -310,7 +268,11 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="CSV file to write")
     sp.set_defaults(func=cmd_fit)
 
-    sp = common(sub.add_parser("simulate", help="simulate a letter-like campaign into a bundle"))
+
+def _add_simulate(sub) -> None:
+    """The ``simulate`` command's options."""
+    from bayes_tfcrds.simulate.campaign import Campaign
+    sp = _common(sub.add_parser("simulate", help="simulate a letter-like campaign into a bundle"))
     sp.add_argument("--preset", action="append", help="letter-D1 ... letter-D4 (repeatable; default letter-D2)")
     sp.add_argument("--effect", action="append", help="NAME[:key=value,...] (repeatable), e.g. "
                     "static_nonlinearity:beta=-3e-3")
@@ -321,7 +283,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="bundle (HDF5) to write")
     sp.set_defaults(func=cmd_simulate)
 
-    sp = common(sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS"))
+
+def _add_linefit(sub) -> None:
+    """The ``linefit`` command's options."""
+    sp = _common(sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
@@ -335,7 +300,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "model is right; such fits are flagged); physical: held at >= 0, as the letter reads its fits")
     sp.add_argument("-o", "--output", required=True, help="JSON file to write")
     sp.set_defaults(func=cmd_linefit)
-    sp = common(sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS"))
+
+
+def _add_budget(sub) -> None:
+    """The ``budget`` command's options."""
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
+    sp = _common(sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
@@ -352,7 +322,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.set_defaults(func=cmd_budget)
 
-    sp = common(sub.add_parser("study", help="run a declared study and write its report"), seed=None,
+
+def _add_study(sub) -> None:
+    """The ``study`` command's options."""
+    sp = _common(sub.add_parser("study", help="run a declared study and write its report"), seed=None,
                 note=" (default: the [study] seed of the file)")
     sp.add_argument("file", help="study file (TOML), e.g. studies/letter_tcut.toml")
     sp.add_argument("-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/")
@@ -360,7 +333,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--workers", type=int, default=2, help="local worker processes (2 uses both cores)")
     sp.set_defaults(func=cmd_study)
 
-    sp = common(sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
+
+def _add_discover(sub) -> None:
+    """The ``discover`` command's options."""
+    sp = _common(sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
                 note=" (discovery is deterministic; the seed is recorded)")
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
@@ -373,11 +349,27 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("-o", "--output", required=True, help="output folder (discovery.json, discovery.html)")
     sp.set_defaults(func=cmd_discover)
 
-    sp = common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"), seed=7)
+
+def _add_demo(sub) -> None:
+    """The ``demo`` command's options."""
+    sp = _common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"), seed=7)
     sp.add_argument("-o", "--output", default="demo-out", help="output folder")
     sp.add_argument("--quick", action="store_true", help="a smaller campaign (for a first look)")
     sp.set_defaults(func=cmd_demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``bayes-tfcrds`` argument parser: one sub-command per job."""
+    p = argparse.ArgumentParser(prog="bayes-tfcrds",
+                                description="Transfer-function-corrected CRDS with honest uncertainty budgets. "
+                                            "The data contract (HDF5 measurement bundle) is FORMAT.md, shipped in "
+                                            "bayes_tfcrds/data/.")
+    p.add_argument("--version", action="version", version=f"bayes-tfcrds {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+    for add in (_add_validate, _add_fit, _add_simulate, _add_linefit, _add_budget, _add_study, _add_discover, _add_demo):
+        add(sub)
     return p
+
 
 
 def main(argv=None) -> int:

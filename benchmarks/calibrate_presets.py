@@ -18,11 +18,12 @@ from dataclasses import replace
 import numpy as np
 from scipy import optimize
 
-from bayes_tfcrds.chain import chain_from_tf
-from bayes_tfcrds.constants import C
-from bayes_tfcrds.ringdown import fit_transients
-from bayes_tfcrds.simulate import PRESETS, Campaign, absorption_truth, detected_transients, line_truth, spectral_points
-from bayes_tfcrds.spectrum import crds_spectrum, fit_line
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
+from bayes_tfcrds.core.constants import C
+from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.simulate.campaign import PRESETS, Campaign, absorption_truth, detected_transients, line_truth, spectral_points
+from bayes_tfcrds.fit.spectrum import crds_spectrum
+from bayes_tfcrds.fit.line import fit_line
 
 LETTER = {"D1": {"A8": -0.7}, "D2": {"tau_base": 0.04, "tau_centre": 2.4, "A8": -0.7},
           "D3": {"A8": -8.0}, "D4": {"tau_base": 0.6, "tau_centre": 16.0, "A8": -8.0}}

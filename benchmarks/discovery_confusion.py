@@ -11,6 +11,8 @@ Usage:  nice python benchmarks/discovery_confusion.py --seeds 5 --seed 11 [--wor
 """
 from __future__ import annotations
 
+import sys
+
 import argparse
 import json
 import time
@@ -20,8 +22,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.discover import CANDIDATES, HIDDEN_CASES, discover
-from bayes_tfcrds.simulate import Campaign, simulate_campaign
+from bayes_tfcrds.discover.workflow import CANDIDATES, discover
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))   # the tests' fixtures
+from tests.discover.hidden_cases import HIDDEN_CASES  # noqa: E402
+from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 
 CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
 CASES = {"nothing": ({}, None), **HIDDEN_CASES}

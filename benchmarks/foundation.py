@@ -14,9 +14,9 @@ import time
 
 import numpy as np
 
-from bayes_tfcrds.chain import chain_from_tf
-from bayes_tfcrds.ringdown import fit_transients
-from bayes_tfcrds.simulate import PRESETS
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
+from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.simulate.campaign import PRESETS
 
 
 def bias_table(tf, dt=20e-9, k=16384, t0=-2e-6):

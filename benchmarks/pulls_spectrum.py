@@ -19,10 +19,11 @@ import time
 
 import numpy as np
 
-from bayes_tfcrds.constants import C, wavenumber_cm_to_hz
-from bayes_tfcrds.linalg import central_jacobian
-from bayes_tfcrds.lineshape import doppler_hwhm_hz, profile
-from bayes_tfcrds.spectrum import SpectrumData, crds_spectrum, fit_line
+from bayes_tfcrds.core.constants import C, wavenumber_cm_to_hz
+from bayes_tfcrds.core.linalg import central_jacobian
+from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
+from bayes_tfcrds.fit.spectrum import SpectrumData, crds_spectrum
+from bayes_tfcrds.fit.line import fit_line
 
 
 def _linear_gain(spectra, gd, nu0):
@@ -30,7 +31,7 @@ def _linear_gain(spectra, gd, nu0):
     (which is the truth to 1e-15)."""
     f = fit_line(spectra, "qsdhcp", gd, nu0)
     model_u = np.concatenate([s.u for s in spectra])
-    from bayes_tfcrds.spectrum import LineModel
+    from bayes_tfcrds.fit.line import LineModel
     model = LineModel("qsdhcp", ("gamma0_hz", "gamma2_hz", "nu_vc_hz"), tuple(s.kind for s in spectra),
                       tuple(s.kind == "dispersion" for s in spectra), nu0, gd, {})
     steps = 1e-6 * np.maximum(np.abs(f.values), 1e-3 * gd)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import os
 import subprocess
 import sys
@@ -26,13 +25,13 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import optimize
 
-from bayes_tfcrds.analysis import calibrate
-from bayes_tfcrds.constants import C
-from bayes_tfcrds.ringdown import fit_ringdowns
-from bayes_tfcrds.simulate import Campaign, simulate_campaign
-from bayes_tfcrds.spectrum import crds_spectrum, fit_line
-from bayes_tfcrds.linefit import doppler_of
-from bayes_tfcrds.transfer_function import transfer_function
+from bayes_tfcrds.fit.h_calibration import calibrate
+from bayes_tfcrds.fit.ringdown import fit_ringdowns
+from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+from bayes_tfcrds.fit.spectrum import crds_spectrum
+from bayes_tfcrds.fit.line import fit_line
+from bayes_tfcrds.fit.line_analysis import doppler_of
+from bayes_tfcrds.physics.transfer_function import transfer_function
 
 T_CUTS = (2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6)
 RESULTS = []
@@ -124,7 +123,7 @@ def main(argv=None):
     report("speed-up over straightforward least_squares", t_naive / t_tf, ">= 20", t_naive / t_tf >= 20, "x")
 
     # propagation of 1000 H draws into A, against full refits
-    from bayes_tfcrds.uncertainty import BudgetOptions, run_budget
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
     opts = BudgetOptions(posterior="laplace", n_h_draws=1000)
     t0 = time.perf_counter()
     res = run_budget(b, cfg, opts, np.random.default_rng(args.seed))
@@ -132,9 +131,9 @@ def main(argv=None):
     report("1000 H draws propagated into A for R1 (whole Laplace budget)", t_prop, "<= 60 s", t_prop <= 60, " s")
     gd = doppler_of(b.sample)
     sens = res.summary["sensitivities_hz_per_m"]
-    from bayes_tfcrds.analysis import BEAT_FREE
+    from bayes_tfcrds.fit.h_calibration import BEAT_FREE
     h_star = replace(tf)
-    from bayes_tfcrds.transfer_function import TFParams
+    from bayes_tfcrds.physics.transfer_function import TFParams
     hs = res.summary["transfer_function"]
     h_star = TFParams(**{k: hs[k] for k in ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r", "variant")})
     draws = res.samples["h_draws"]

@@ -1,0 +1,5 @@
+"""The measurement bundle (FORMAT.md, one HDF5 file per campaign): records, reader and
+validator, writer, and the human-readable summary.
+
+May import: core, output.
+"""

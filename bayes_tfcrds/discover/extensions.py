@@ -1,0 +1,604 @@
+"""Model extensions the discovery workflow can switch on: transient-level and spectrum-level fitters.
+
+Each canonical effect of :mod:`bayes_tfcrds.simulate` has a fitter here that adds its physics to
+the analysis model, with its own parameters (charged for by the discovery's evidence):
+
+Transient level (model ``y = b + B g(t; tau, shared) + per-transient extra columns``; b, B and
+the extra amplitudes are solved exactly per transient, tau by a batched Gauss-Newton with the
+linear parameters projected out, and the *shared* parameters, one set per configuration, by a
+small optimisation of the total chi2):
+
+* ``static_nonlinearity``: shared beta; the data are mapped back through V' = V + beta V^2/V_ref
+  (V_ref = 1 V) and fitted with the unchanged model.
+* ``baseline_drift``: shared drift slope (V/s) subtracted from the data.
+* ``second_mode``: g -> (1 - f) g(tau) + f g(r tau); shared fraction f and decay-time ratio r
+  (its decay time scales with tau).
+* ``extinction_tail``: the cavity fed by f exp(-t/tau_x) after extinction; shared f and tau_x
+  (the tail time is the same at every spectral point).
+* ``mode_beating``: exp(-t/tau) cos / sin (2 pi f_b t) columns with per-transient amplitudes and
+  one shared beat frequency f_b, started from the residual periodogram.
+* ``transfer_function`` / ``window_history``: TF-CRDS with the calibrated H instead of CRDS, and
+  the extinction instead of the letter window (these only change ``method``/``window``).
+
+With TF-CRDS the extension terms pass through H as well: exponentials through the exact
+forward model of :mod:`bayes_tfcrds.forward`, the beating columns by one FFT on the extinction
+grid (for the ``letter`` window too: the window approximation is the main term's, not the
+small extension's).
+
+Spectrum level (:func:`fit_spectrum_extended`): the line profile follows the model (voigt,
+sdvp for ``speed_dependence``, rautian for ``hard_collisions``, qsdhcp for both), plus
+``etalon`` (a sinusoidal alpha baseline: amplitude, period, phase) and ``neighbour_line`` (a
+second line of the same shape: offset and area ratio).
+
+Units: SI throughout (s, V, Hz, 1/m).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import optimize
+
+from bayes_tfcrds.core.constants import C
+from bayes_tfcrds.physics.forward import ramp_shape, extinction_grid, filtered_response, first_index_at, grid_transfer_function, model_grids
+from bayes_tfcrds.core.linalg import central_jacobian, covariance_from_fisher
+from bayes_tfcrds.physics.lineshape import profile
+from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.physics.transfer_function import TFParams
+
+V_REF = 1.0                         # V, the nonlinearity's reference level (as in the simulator)
+
+# shared parameters of each transient extension: (name, unit, lower, upper)
+SHARED = {
+    "static_nonlinearity": (("beta", "1", -0.05, 0.05),),
+    "baseline_drift": (("slope_v_per_s", "V/s", -200.0, 200.0),),
+    "second_mode": (("fraction", "1", 0.0, 0.3), ("tau_ratio", "1", 0.05, 0.95)),
+    "extinction_tail": (("fraction", "1", 0.0, 0.3), ("tau_s", "s", 2e-7, 2e-4)),
+    "mode_beating": (("freq_hz", "Hz", 1e4, 2.4e7),),
+}
+SHAPE_EFFECTS = ("second_mode", "extinction_tail", "mode_beating")
+SPECTRUM_EXTRAS = ("etalon", "neighbour_line")
+
+
+def invert_nonlinearity(v, beta):
+    """V from V' = V + beta V^2 / V_ref (V), the root that is continuous at beta = 0."""
+    v = np.asarray(v, float)
+    if beta == 0.0:
+        return v
+    return 2.0 * v / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * beta * v / V_REF, 1e-12)))
+
+
+# --------------------------------------------------------------------------- transient model
+
+
+@dataclass(frozen=True)
+class TransientSpec:
+    """Which transient-level extensions are on, with their shared parameters (dict per effect)."""
+
+    method: str = "crds"
+    window: str | None = None
+    tf: TFParams | None = None
+    shared: dict = field(default_factory=dict)
+
+    def has(self, name):
+        return name in self.shared
+
+    def n_row_params(self) -> int:
+        """Linear parameters per transient besides tau: b, B and the beating amplitudes."""
+        return 2 + (2 if self.has("mode_beating") else 0)
+
+    def n_shared(self) -> int:
+        return sum(len(SHARED[k]) for k in self.shared)
+
+
+class _Columns:
+    """Design columns (n rows, k, T samples) of the transient model for given decay times."""
+
+    def __init__(self, t, t_cut_rows, mask, spec: TransientSpec):
+        self.t, self.mask, self.spec = t, mask, spec
+        self.tp = np.clip(t, 0.0, None)
+        self.tf = spec.tf if spec.method == "tf-crds" else None
+        if self.tf is not None:
+            dt = float(t[1] - t[0])
+            uniq, self.group = np.unique(t_cut_rows, return_inverse=True)
+            self.grids = model_grids(float(t[0]), dt, t.size, uniq, self.tf, spec.window)
+            self.h = [grid_transfer_function(g, self.tf) for g in self.grids]
+            self.xgrid = extinction_grid(float(t[0]), dt, t.size, self.tf)
+            self.xh = grid_transfer_function(self.xgrid, self.tf)
+            ts = self.xgrid.start_s + dt * np.arange(self.xgrid.n_fft)
+            taper = np.ones(self.xgrid.n_fft)
+            if self.xgrid.n_ramp:
+                taper[self.xgrid.m_ramp:] = 1.0 - ramp_shape(self.xgrid.n_ramp)
+            self.xt = ts
+            self.xtaper = np.where(ts >= 0, taper, 0.0)
+            self.xcols = np.arange(t.size) + self.xgrid.data_offset
+
+    def main(self, tau, rows):
+        """Response to the ring-down input (1 before extinction, exp(-t/tau) after)."""
+        if self.tf is None:
+            return np.where(self.t[None, :] >= 0, np.exp(-self.tp[None, :] / tau[:, None]), 1.0)
+        g = np.empty((rows.size, self.t.size))
+        grp = self.group[rows]
+        for gi in np.unique(grp):
+            sel = np.nonzero(grp == gi)[0]
+            g[sel] = filtered_response(tau[sel], self.grids[gi], self.h[gi], fill=0.0)
+        return g
+
+    def filtered(self, x_fn, tau):
+        """A term that starts at extinction, x(t; tau) for t >= 0, through the chain."""
+        if self.tf is None:
+            return np.where(self.t[None, :] >= 0, x_fn(self.tp[None, :], tau[:, None]), 0.0)
+        x = x_fn(np.clip(self.xt, 0, None)[None, :], tau[:, None]) * self.xtaper[None, :]
+        out = sfft.irfft(sfft.rfft(x, axis=-1) * self.xh[None, :], n=self.xgrid.n_fft, axis=-1)
+        return out[:, self.xcols]
+
+    def __call__(self, tau, rows):
+        sh = self.spec.shared
+        g = self.main(tau, rows)
+        if "second_mode" in sh:
+            f, r = sh["second_mode"]["fraction"], sh["second_mode"]["tau_ratio"]
+            g = (1.0 - f) * g + f * self.main(r * tau, rows)
+        if "extinction_tail" in sh:
+            f, tx = sh["extinction_tail"]["fraction"], sh["extinction_tail"]["tau_s"]
+            d = 1.0 / tau - 1.0 / tx
+            # keep away from tau = tau_x, where the coefficient's pole cancels the difference's zero
+            d = np.where(np.abs(tau * d) < 1e-4, 1e-4 / tau, d)
+            txe = 1.0 / (1.0 / tau - d)
+            g = g + (f / (tau * d))[:, None] * (self.main(txe, rows) - self.main(tau, rows))
+        cols = [np.ones_like(g), g]
+        if "mode_beating" in sh:
+            w = 2 * np.pi * sh["mode_beating"]["freq_hz"]
+            cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.cos(w * t), tau))
+            cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.sin(w * t), tau))
+        out = np.stack(cols, axis=1)
+        out *= self.mask[rows][:, None, :]
+        return out
+
+
+@dataclass(frozen=True)
+class TransientResult:
+    """Fits of n rows (spectral point x t_cut, flattened point-major) under a TransientSpec."""
+
+    tau_s: np.ndarray
+    tau_u_s: np.ndarray
+    coef: np.ndarray            # (n, k) linear parameters: b, B(, beating cos, sin)
+    chi2: np.ndarray
+    n_used: np.ndarray
+    converged: np.ndarray
+    resid_norm: np.ndarray      # (n, T) residual / noise, zero outside the fit range
+
+
+def _solve(m, v):
+    """Batched solve of (n, k, k) systems for (n, k) right-hand sides."""
+    return np.linalg.solve(m, v[..., None])[..., 0]
+
+
+def _varpro_tau(cols, y, wm, tau0, max_iter=40, rtol=1e-8, rel_step=1e-6):
+    """Gauss-Newton on tau per row with all linear columns projected out (batched).
+
+    The step uses Kaufman's approximation of the variable-projection Jacobian: the
+    derivative of the model at fixed linear parameters, projected orthogonally to the
+    columns. rtol 1e-8 is far below any decay time's statistical uncertainty (~1e-4).
+    """
+    tau = np.asarray(tau0, float).copy()
+    n = tau.size
+    rows = np.arange(n)
+    conv = np.zeros(n, bool)
+    active = np.ones(n, bool)
+
+    def linear(idx, t_):
+        c = cols(t_, idx)
+        dc = (cols(t_ * (1 + rel_step), idx) - c) / (t_ * rel_step)[:, None, None]
+        w, yy = wm[idx], y[idx]
+        wc = c * w[:, None, :]
+        m = wc @ c.transpose(0, 2, 1)
+        a = _solve(m, (wc @ yy[:, :, None])[..., 0])
+        r = yy - (a[:, None, :] @ c)[:, 0]
+        j = (a[:, None, :] @ dc)[:, 0]
+        p = _solve(m, (wc @ j[:, :, None])[..., 0])
+        jp = j - (p[:, None, :] @ c)[:, 0]
+        return a, r, jp, w
+
+    for _ in range(max_iter):
+        idx = rows[active]
+        if idx.size == 0:
+            break
+        a, r, jp, w = linear(idx, tau[idx])
+        num, den = (w * jp * r).sum(-1), (w * jp * jp).sum(-1)
+        ok = np.isfinite(num) & (den > 0)
+        step = np.clip(np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx])
+        tau[idx] += step
+        done = ok & (np.abs(step) <= rtol * tau[idx])
+        conv[idx[done]] = True
+        active[idx[done | ~ok]] = False
+    a, r, jp, w = linear(rows, tau)
+    tau_u = 1.0 / np.sqrt((w * jp * jp).sum(-1))
+    return tau, tau_u, a, r, conv
+
+
+def fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec: TransientSpec, tau_start_s=None) -> TransientResult:
+    """Fit rows (transient ``rows_of[i]`` from ``t_cut_rows[i]``, s) under ``spec``.
+
+    Noise per sample is the bundle's ``noise_v`` (V); the chi2 is the weighted sum of squares.
+    """
+    t = ringdowns.time_s
+    y = np.asarray(ringdowns.signal_v, float)[rows_of]
+    sh = spec.shared
+    if ringdowns.noise_v is None or np.ndim(ringdowns.noise_v) != 1:
+        raise ValueError("discovery needs one noise level per transient (/ringdowns/noise_v of shape (m,))")
+    noise_rows = np.asarray(ringdowns.noise_v, float)[rows_of]
+    noise2 = np.broadcast_to(noise_rows[:, None], y.shape)
+    if "static_nonlinearity" in sh:
+        beta = sh["static_nonlinearity"]["beta"]
+        y = invert_nonlinearity(y, beta)
+        # the noise is mapped back too, by 1/(dV'/dV): without it the chi2 of the mapped data
+        # would drop for beta > 0 merely because the mapping shrinks the noise
+        noise2 = noise2 / np.abs(1.0 + 2.0 * beta * y / V_REF)
+    if "baseline_drift" in sh:
+        y = y - sh["baseline_drift"]["slope_v_per_s"] * (t - t[0])[None, :]
+    dt = t[1] - t[0]
+    first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut_rows])
+    mask = np.arange(t.size)[None, :] >= first[:, None]
+    wm = mask / noise2 ** 2
+    if not any(k in sh for k in SHAPE_EFFECTS):
+        fits = fit_transients(t, y, t_cut_rows, method=spec.method, tf=spec.tf,
+                              window=spec.window if spec.method == "tf-crds" else None,
+                              noise_v=np.ascontiguousarray(noise2), keep_residuals=True, tau_start_s=tau_start_s)
+        # B of the CRDS model is its amplitude at t_cut; report both models' B at t = 0 alike
+        amp = fits.amplitude_v if spec.method == "tf-crds" else fits.amplitude_v * np.exp(t_cut_rows / fits.tau_s)
+        return TransientResult(tau_s=fits.tau_s, tau_u_s=fits.tau_u_s,
+                               coef=np.stack([fits.offset_v, amp], axis=1), chi2=fits.chi2, n_used=mask.sum(-1),
+                               converged=fits.converged, resid_norm=fits.residuals_v / noise2)
+    cols = _Columns(t, np.asarray(t_cut_rows, float), mask, spec)
+    if tau_start_s is None:
+        base = fit_transients(t, y, t_cut_rows, method="crds", noise_v=noise_rows)
+        tau_start_s = base.tau_s
+    tau, tau_u, a, r, conv = _varpro_tau(cols, y, wm, np.asarray(tau_start_s, float))
+    r = np.where(mask, r, 0.0)
+    chi2 = (wm * r * r).sum(-1)
+    return TransientResult(tau_s=tau, tau_u_s=tau_u, coef=a, chi2=chi2, n_used=mask.sum(-1), converged=conv,
+                           resid_norm=r / noise2)
+
+
+def residual_periodogram_peak(resid_norm, dt_s, f_min_hz=2e5):
+    """Frequency (Hz) of the largest summed periodogram power of normalised residual rows."""
+    p = np.abs(np.fft.rfft(resid_norm, axis=-1)) ** 2
+    f = np.fft.rfftfreq(resid_norm.shape[-1], dt_s)
+    s = p.sum(0)
+    ok = f >= f_min_hz
+    return float(f[ok][np.argmax(s[ok])])
+
+
+def bin_ringdowns(rd, k: int):
+    """Average k consecutive samples (noise / sqrt(k)): a coarser record for parameter searches.
+
+    Decay times are >= 3 us and dt is tens of ns, so averaging k = 8 samples (160 ns) changes an
+    exponential's shape by < (k dt / tau)^2 / 24 ~ 1e-4: enough to locate the minimum, which is
+    then re-evaluated on the full record.
+    """
+    from bayes_tfcrds.bundle.records import RingdownData
+    n = rd.n_samples // k
+    sig = np.asarray(rd.signal_v, float)[:, :n * k].reshape(rd.n_points, n, k).mean(-1)
+    return RingdownData(nu_hz=rd.nu_hz, signal_v=sig, dt_s=rd.dt_s * k, t0_s=rd.t0_s + 0.5 * (k - 1) * rd.dt_s,
+                        noise_v=np.asarray(rd.noise_v, float) / np.sqrt(k))
+
+
+def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, tau_start_s, resid_norm=None,
+                    search_bin: int = 8, with_cov: bool = True):
+    """Fit the shared parameters of extension ``name`` on the rows' total chi2.
+
+    Returns (params dict, TransientResult, covariance of the shared parameters or None).
+    Starting points come from the data (the residual periodogram for the beating frequency)
+    and, for two-parameter extensions, a small grid, since the chi2 surface of a weak second
+    exponential is flat along a valley and has more than one local minimum.
+    """
+    full = ringdowns
+    if search_bin > 1 and name != "mode_beating":
+        ringdowns = bin_ringdowns(ringdowns, search_bin)
+    names = [s[0] for s in SHARED[name]]
+    lo = np.array([s[2] for s in SHARED[name]])
+    hi = np.array([s[3] for s in SHARED[name]])
+    cache = {}
+    warm = {"tau": np.asarray(tau_start_s, float)}
+
+    def spec_at(x):
+        return TransientSpec(base.method, base.window, base.tf, {**base.shared, name: dict(zip(names, map(float, x)))})
+
+    def key_of(x):
+        x = np.clip(np.asarray(x, float), lo, hi)
+        if name in ("second_mode", "extinction_tail") and x[0] == 0.0:
+            x = np.array([0.0, lo[1]])        # no second exponential: the time parameter is moot
+        return x, tuple(np.round(x, 14))
+
+    def chi2(x):
+        x, key = key_of(x)
+        if key not in cache:
+            res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec_at(x), warm["tau"])
+            cache[key] = (float(res.chi2.sum()), res)
+            if np.all(res.converged):
+                warm["tau"] = res.tau_s
+        return cache[key][0]
+
+    if name == "static_nonlinearity":
+        sol = optimize.minimize_scalar(lambda b: chi2([b]), bounds=(lo[0], hi[0]), method="bounded",
+                                       options={"xatol": 1e-7})
+        x = np.array([sol.x])
+    elif name == "baseline_drift":
+        sol = optimize.minimize_scalar(lambda s: chi2([s]), bounds=(lo[0], hi[0]), method="bounded",
+                                       options={"xatol": 1e-4})
+        x = np.array([sol.x])
+    elif name == "mode_beating":
+        dt = float(ringdowns.dt_s)
+        f0 = residual_periodogram_peak(resid_norm, dt) if resid_norm is not None else 1e6
+        n_eff = resid_norm.shape[-1] if resid_norm is not None else ringdowns.n_samples
+        df = 1.0 / (n_eff * dt)
+        sol = optimize.minimize_scalar(lambda f: chi2([f]), bounds=(max(lo[0], f0 - 3 * df), min(hi[0], f0 + 3 * df)),
+                                       method="bounded", options={"xatol": 1e-3 * df})
+        x = np.array([sol.x])
+    else:
+        # a weak second exponential: the chi2 surface has a long curved valley (a larger
+        # fraction with a decay time closer to tau mimics a smaller, faster one), so the fraction
+        # is profiled out by a bounded 1-d search inside a bounded search over the time parameter
+        # (log tau_x for the tail), started from the best point of a coarse grid
+        inner = {}
+
+        def profile_f(g):
+            # at fixed time parameter the model is nearly linear in the fraction, so chi2(f) is
+            # nearly a parabola: two parabolic steps from f = 0 locate its minimum
+            if g not in inner:
+                fmax = hi[0] / 3
+                pts = {0.0: chi2([0.0, g]), 2e-3: chi2([2e-3, g]), 4e-3: chi2([4e-3, g])}
+                for _ in range(2):
+                    f3 = sorted(pts, key=lambda f: pts[f])[:3]
+                    fa, fb, fc = sorted(f3)
+                    ca, cb, cc = pts[fa], pts[fb], pts[fc]
+                    den = (fb - fa) * (cb - cc) - (fb - fc) * (cb - ca)
+                    if den == 0:
+                        break
+                    fn = fb - 0.5 * ((fb - fa) ** 2 * (cb - cc) - (fb - fc) ** 2 * (cb - ca)) / den
+                    fn = float(np.clip(fn, 0.0, fmax)) if np.isfinite(fn) else 0.0
+                    if any(abs(fn - f) < 1e-7 for f in pts):
+                        break
+                    pts[fn] = chi2([fn, g])
+                fbest = min(pts, key=lambda f: pts[f])
+                inner[g] = (pts[fbest], fbest)
+            return inner[g][0]
+
+        if name == "second_mode":
+            to_g, grid = (lambda z: z), np.array([0.2, 0.4, 0.6, 0.75, 0.9])
+        else:
+            to_g, grid = np.exp, np.log([1e-6, 3e-6, 1e-5, 3e-5, 1e-4])
+        vals = [profile_f(float(to_g(z))) for z in grid]
+        b = int(np.argmin(vals))
+        zlo, zhi = grid[max(b - 1, 0)], grid[min(b + 1, grid.size - 1)]
+        sol = optimize.minimize_scalar(lambda z: profile_f(float(to_g(z))), bounds=(zlo, zhi), method="bounded",
+                                       options={"xatol": 3e-3, "maxiter": 12})
+        g_best = float(to_g(sol.x)) if sol.fun <= vals[b] else float(to_g(grid[b]))
+        x = np.array([inner[g_best][1], g_best])
+    x = np.clip(x, lo, hi)
+    if ringdowns is not full:
+        ringdowns = full
+        cache.clear()
+        warm["tau"] = np.asarray(tau_start_s, float)
+        if name in ("static_nonlinearity", "baseline_drift"):
+            # one-parameter searches are cheap: polish on the full record
+            w = 0.05 * (np.abs(x[0]) + (1e-4 if name == "static_nonlinearity" else 0.05))
+            x = np.array([optimize.minimize_scalar(lambda v: chi2([v]), bounds=(x[0] - w, x[0] + w), method="bounded",
+                                                   options={"xatol": 1e-3 * w}).x])
+    chi2(x)
+    res = cache[key_of(x)[1]][1]
+    cov = _shared_covariance(chi2, x, lo, hi) if with_cov else None
+    return dict(zip(names, map(float, x))), res, cov
+
+
+def shared_covariance(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, params: dict, tau_start_s):
+    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2 curvature)."""
+    names = [s[0] for s in SHARED[name]]
+    warm = {"tau": np.asarray(tau_start_s, float)}
+
+    def chi2(x):
+        spec = TransientSpec(base.method, base.window, base.tf, {**base.shared, name: dict(zip(names, map(float, x)))})
+        res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec, warm["tau"])
+        return float(res.chi2.sum())
+
+    lo = np.array([s[2] for s in SHARED[name]])
+    hi = np.array([s[3] for s in SHARED[name]])
+    return _shared_covariance(chi2, np.array([params[n] for n in names], float), lo, hi)
+
+
+def _shared_covariance(chi2, x, lo, hi):
+    """Covariance 2 H^-1 of the profiled chi2 at its minimum (central second differences)."""
+    k = x.size
+    h = 1e-3 * np.maximum(np.abs(x), np.where(np.abs(x) > 0, 0, 1e-6))
+    hess = np.empty((k, k))
+    f0 = chi2(x)
+    for i in range(k):
+        ei = np.zeros(k)
+        ei[i] = h[i]
+        hess[i, i] = (chi2(x + ei) - 2 * f0 + chi2(x - ei)) / h[i] ** 2
+        for j in range(i):
+            ej = np.zeros(k)
+            ej[j] = h[j]
+            hess[i, j] = hess[j, i] = (chi2(x + ei + ej) - chi2(x + ei - ej) - chi2(x - ei + ej)
+                                       + chi2(x - ei - ej)) / (4 * h[i] * h[j])
+    try:
+        cov = 2.0 * np.linalg.inv(hess)
+    except np.linalg.LinAlgError:
+        return None
+    if np.any(np.diag(cov) <= 0) or not np.all(np.isfinite(cov)):
+        return None
+    return cov
+
+
+# --------------------------------------------------------------------------- spectrum model
+
+PROFILE_SHAPE_FREE = {"voigt": ("gamma0_hz",), "sdvp": ("gamma0_hz", "gamma2_hz"),
+                      "rautian": ("gamma0_hz", "nu_vc_hz"), "qsdhcp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz")}
+
+
+@dataclass(frozen=True)
+class SpectrumFit:
+    """A line fit with optional etalon and neighbour line (SI: Hz/m, Hz, 1/m or Hz)."""
+
+    kind: str
+    profile: str
+    names: tuple
+    values: np.ndarray
+    cov: np.ndarray
+    chi2: float
+    n: int
+    residuals_norm: np.ndarray
+    nu_hz: np.ndarray
+
+    @property
+    def k(self) -> int:
+        return len(self.names)
+
+    @property
+    def dof(self) -> int:
+        return self.n - self.k
+
+    def value(self, name):
+        return float(self.values[self.names.index(name)])
+
+    def stderr(self, name):
+        i = self.names.index(name)
+        return float(np.sqrt(max(self.cov[i, i], 0.0)))
+
+
+def _names(kind, profile_name, extras):
+    names = ["line_area", "position_offset_hz", *PROFILE_SHAPE_FREE[profile_name], "baseline"]
+    if kind == "dispersion":
+        names.append("slope")
+    if "etalon" in extras:
+        names += ["etalon_amplitude_per_m", "etalon_period_hz", "etalon_phase_rad"]
+    if "neighbour_line" in extras:
+        names += ["neighbour_offset_hz", "neighbour_ratio"]
+    return tuple(names)
+
+
+def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed=None):
+    """Model spectrum: absorption (1/m) or dispersion mode shift (Hz) at nu_hz."""
+    p = dict(zip(names, theta))
+    p.update(fixed or {})
+    shape = {k: p[k] for k in PROFILE_SHAPE_FREE[profile_name]}
+    det = nu_hz - nu_ref_hz
+    g = profile(profile_name, det, p["position_offset_hz"], doppler_hwhm_hz, **shape)
+    if "neighbour_offset_hz" in p:
+        g = g + p["neighbour_ratio"] * profile(profile_name, det, p["position_offset_hz"] + p["neighbour_offset_hz"],
+                                               doppler_hwhm_hz, **shape)
+    if kind == "absorption":
+        y = p["line_area"] * g.real + p["baseline"]
+    else:
+        y = C * p["line_area"] * g.imag / (4 * np.pi) + p["baseline"] + p["slope"] * det
+    if "etalon_amplitude_per_m" in p and kind == "absorption":
+        y = y + p["etalon_amplitude_per_m"] * np.sin(2 * np.pi * det / p["etalon_period_hz"] + p["etalon_phase_rad"])
+    return y
+
+
+def fit_spectrum_extended(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras=(),
+                          fixed=None, start=None) -> SpectrumFit:
+    """Weighted least squares of a line (+ extras) to one spectrum; covariance from the Jacobian.
+
+    ``fixed`` holds parameters not fitted (e.g. the neighbour line's position and ratio in the
+    CMDS fit, taken from the CRDS fit). Several starts are tried for the etalon period and the
+    neighbour position (from the residuals of the fit without them), keeping the best.
+    """
+    nu_hz, y, u = (np.asarray(a, float) for a in (nu_hz, y, u))
+    fixed = dict(fixed or {})
+    extras = tuple(e for e in extras if not (e == "etalon" and kind == "dispersion"))
+    names_all = _names(kind, profile_name, extras)
+    names = tuple(n for n in names_all if n not in fixed)
+    det = nu_hz - nu_ref_hz
+    order = np.argsort(nu_hz)
+    if kind == "absorption":
+        base0 = float(np.median(np.concatenate([y[order][:4], y[order][-4:]])))
+        area0 = float(np.trapezoid(y[order] - base0, nu_hz[order]))
+    else:
+        base0 = 0.0
+        area0 = float((y.max() - y.min()) * 4 * np.pi / C * np.pi * doppler_hwhm_hz * 0.9)
+    default = {"line_area": area0, "position_offset_hz": 0.0, "gamma0_hz": 0.05 * doppler_hwhm_hz,
+               "gamma2_hz": 0.01 * doppler_hwhm_hz, "nu_vc_hz": 0.01 * doppler_hwhm_hz, "baseline": base0,
+               "slope": 0.0, "etalon_amplitude_per_m": 0.0, "etalon_period_hz": 2e9, "etalon_phase_rad": 0.0,
+               "neighbour_offset_hz": 1e9, "neighbour_ratio": 0.0}
+    start = {**default, **(start or {})}
+    lo = {"line_area": 0.0, "gamma0_hz": 0.0, "gamma2_hz": 0.0, "nu_vc_hz": 0.0, "etalon_period_hz": 1e8,
+          "neighbour_ratio": 0.0, "etalon_amplitude_per_m": 0.0}
+    lo_v = np.array([lo.get(n, -np.inf) for n in names])
+    span = float(np.ptp(nu_hz))
+    hi_v = np.array([{"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5}.get(n, np.inf) for n in names])
+    nonsc = {"position_offset_hz": 1e-3 * doppler_hwhm_hz, "etalon_phase_rad": 1.0, "neighbour_offset_hz": doppler_hwhm_hz,
+             "slope": 1e-9, "baseline": 0.0, "etalon_amplitude_per_m": 1e-8, "neighbour_ratio": 1e-4}
+
+    def run(st):
+        th0 = np.array([st[n] for n in names], float)
+        th0 = np.clip(th0, np.where(np.isfinite(lo_v), lo_v + 1e-300, -np.inf), hi_v)
+        sc = np.abs(th0) + np.array([nonsc.get(n, 0.0) for n in names])
+        sc = np.where(sc > 0, sc, 1.0)
+
+        def resid(x):
+            th = x * sc
+            return (spectrum_model(th, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed) - y) / u
+
+        sol = optimize.least_squares(resid, th0 / sc, bounds=(lo_v / sc, hi_v / sc), x_scale="jac",
+                                     xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=3000)
+        return float(2 * sol.cost), sol.x * sc
+
+    starts = [start]
+    if "etalon" in extras or "neighbour_line" in extras:
+        # residuals of the fit without the extras point at the period / the neighbour's position
+        plain = fit_spectrum_extended(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, (), fixed=None)
+        r = -plain.residuals_norm * u          # data minus model
+        st = {**start, **dict(zip(plain.names, plain.values))}
+        starts = []
+        periods = _periodogram_periods(det, r / u, span) if "etalon" in extras else [None]
+        far = np.abs(det) > 2 * doppler_hwhm_hz
+        bumps = det[far][np.argsort(-(r / u)[far])][:3] if "neighbour_line" in extras else [None]
+        for per in periods:
+            for b in bumps:
+                s = dict(st)
+                if per is not None:
+                    amp, ph = _sinusoid_at(det, r, u, per)
+                    s.update(etalon_period_hz=per, etalon_amplitude_per_m=max(amp, 1e-12), etalon_phase_rad=ph)
+                if b is not None:
+                    s.update(neighbour_offset_hz=float(b), neighbour_ratio=1e-3)
+                starts.append(s)
+    best = min((run(s) for s in starts), key=lambda c: c[0])
+    chi2, theta = best
+
+    def model(th):
+        return spectrum_model(th, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed)
+
+    steps = 1e-6 * np.maximum(np.abs(theta), np.array([nonsc.get(n, 1e-3 * abs(t) + 1e-30) for n, t in zip(names, theta)]))
+    jac = central_jacobian(model, theta, steps) / u[:, None]
+    try:
+        cov = covariance_from_fisher(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        cov = np.full((theta.size, theta.size), np.nan)
+    r = (model(theta) - y) / u
+    return SpectrumFit(kind=kind, profile=profile_name, names=names, values=theta, cov=cov, chi2=float(r @ r),
+                       n=y.size, residuals_norm=r, nu_hz=nu_hz)
+
+
+def _periodogram_periods(det, z, span, n_best=3):
+    """Periods (Hz) of the strongest sinusoids in residuals z on the uneven grid det (Lomb-Scargle)."""
+    from scipy.signal import lombscargle
+    periods = np.geomspace(2.5 * np.median(np.diff(np.sort(det))), span, 300)
+    pw = lombscargle(det, z - z.mean(), 2 * np.pi / periods)
+    idx = np.argsort(-pw)
+    out = []
+    for i in idx:
+        if all(abs(np.log(periods[i] / p)) > 0.15 for p in out):
+            out.append(float(periods[i]))
+        if len(out) == n_best:
+            break
+    return out
+
+
+def _sinusoid_at(det, r, u, period):
+    """Amplitude and phase of the best sinusoid of a given period in residuals r (weighted)."""
+    x = 2 * np.pi * det / period
+    a = np.stack([np.sin(x), np.cos(x)], 1) / u[:, None]
+    c, *_ = np.linalg.lstsq(a, r / u, rcond=None)
+    return float(np.hypot(*c)), float(np.arctan2(c[1], c[0]))

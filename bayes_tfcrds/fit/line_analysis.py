@@ -1,0 +1,206 @@
+"""Line area of one configuration: ring-down fits -> CRDS spectrum -> profile fit, and CMDS.
+
+The result is a :class:`LineAnalysis`; its ``to_dict()`` is the JSON record, with spectroscopic
+units at that edge, each labelled.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+from bayes_tfcrds.core.constants import intensity_to_cm_per_molecule, line_area_to_cm2, number_density
+from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
+from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, fit_line
+from dataclasses import dataclass
+
+from bayes_tfcrds.core.gum import ratio
+from bayes_tfcrds.core.quantity import Quantity
+from bayes_tfcrds.fit.line import LineFit
+from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
+
+
+class LineFitError(ValueError):
+    """The line analysis cannot run on this bundle (the message says what is missing)."""
+
+
+def doppler_of(sample) -> float:
+    """Doppler HWHM (Hz) from the bundle's sample: T and the absorber mass."""
+    if sample.mass_u is None:
+        raise LineFitError("/sample@mass_u is absent: the Doppler width needs the absorber's mass (u)")
+    return float(doppler_hwhm_hz(sample.nu0_hz, sample.temperature_k, sample.mass_u))
+
+
+def _area_entry(value_si, u_si):
+    return {"value": float(line_area_to_cm2(value_si)), "u": float(line_area_to_cm2(u_si)), "unit": "cm^-2",
+            "value_si": float(value_si), "u_si": float(u_si), "unit_si": "Hz/m"}
+
+
+def check_overlap(config):
+    """Refuse a CMDS reference that does not cover the ring-down spectrum's frequency range:
+    comparing areas of two spectra of different stretches of the line would mean nothing."""
+    if config.cmds is None:
+        return
+    rd_lo, rd_hi = np.min(config.ringdowns.nu_hz), np.max(config.ringdowns.nu_hz)
+    cm_lo, cm_hi = np.min(config.cmds.nu_hz), np.max(config.cmds.nu_hz)
+    inside = np.sum((config.cmds.nu_hz >= rd_lo) & (config.cmds.nu_hz <= rd_hi))
+    if cm_hi < rd_lo or cm_lo > rd_hi or inside < 8:
+        raise LineFitError(
+            f"/configs/{config.name}/cmds/nu_hz spans {cm_lo / 1e12:.6f}-{cm_hi / 1e12:.6f} THz and does not overlap "
+            f"the ring-down range /configs/{config.name}/ringdowns/nu_hz {rd_lo / 1e12:.6f}-{rd_hi / 1e12:.6f} THz "
+            f"({inside} CMDS points inside it; at least 8 needed)")
+
+
+def check_t_cuts(config, t_cuts_s):
+    """Refuse truncation times (s, from laser extinction) outside the ring-down record before any
+    work is done: a fit needs t_cut >= 0 and some samples after it (8, as ringdown.fit_transients)."""
+    t = config.ringdowns.time_s
+    last, dt = float(t[-1]), float(t[1] - t[0]) if t.size > 1 else 0.0
+    for tc in np.atleast_1d(np.asarray(t_cuts_s, float)):
+        if not np.isfinite(tc) or tc < 0:
+            raise LineFitError(f"t_cut = {tc:g} s: t_cut is counted from laser extinction and must be >= 0 s")
+        if tc >= last - 8 * dt:
+            raise LineFitError(f"t_cut = {tc:g} s is beyond the record of /configs/{config.name}/ringdowns "
+                               f"(last sample at {last:g} s; a fit needs samples after t_cut)")
+
+
+def fit_reference(bundle, config, profile_name: str = "qsdhcp"):
+    """Profile fit to the configuration's CMDS mode shifts (the reference A_ref), or None."""
+    if config.cmds is None:
+        return None
+    return fit_line([cmds_spectrum(config.cmds)], profile_name, doppler_of(bundle.sample), bundle.sample.nu0_hz)
+
+
+@dataclass(frozen=True)
+class LineAnalysis:
+    """The line area of one configuration from one method and t_cut, and its CMDS comparison.
+
+    SI inside: ``line_fit.line_area`` in Hz/m; :attr:`line_area` and :meth:`to_dict` give
+    cm^-2 at the edge, labelled.
+    """
+
+    configuration: str
+    method: str
+    window: str | None
+    t_cut_s: float
+    profile: str
+    line_fit: LineFit
+    reference_fit: LineFit | None
+    spectrum: SpectrumData
+    number_density_m3: float
+    n_points: int
+    clipped_points: int
+    unconverged_points: int
+    record_short_points: int
+    calibration: object | None = None
+
+    @property
+    def line_area(self) -> Quantity:
+        """A (cm^-2) with its fit uncertainty."""
+        return Quantity(float(line_area_to_cm2(self.line_fit.line_area)),
+                        float(line_area_to_cm2(self.line_fit.line_area_u)), "cm^-2")
+
+    @property
+    def reference_area(self) -> Quantity | None:
+        """A_ref (cm^-2) from the CMDS fit, or None without CMDS."""
+        ref = self.reference_fit
+        if ref is None:
+            return None
+        return Quantity(float(line_area_to_cm2(ref.line_area)), float(line_area_to_cm2(ref.line_area_u)), "cm^-2")
+
+    @property
+    def ratio(self) -> Quantity | None:
+        """A/A_ref with its first-order uncertainty (fit uncertainties only), or None."""
+        ref = self.reference_fit
+        if ref is None:
+            return None
+        r, u = ratio(self.line_fit.line_area, self.line_fit.line_area_u, ref.line_area, ref.line_area_u)
+        return Quantity(float(r), float(u), "")
+
+    @property
+    def chi2_red(self) -> float:
+        """Reduced chi-square of the CRDS spectrum fit."""
+        return float(self.line_fit.chi2_red)
+
+    @property
+    def unphysical_shape(self) -> list:
+        """Shape estimates below 0 (Gamma2, nu_VC): fitted on the profile's continuation."""
+        return list(self.line_fit.unphysical)
+
+    @property
+    def shape_at_bound(self) -> list:
+        """Shape parameters held at 0 by ``physical_bounds`` (not free at the solution: u = 0)."""
+        return [n for n in self.line_fit.at_bound if n in PHYSICAL_NONNEGATIVE]
+
+    def to_dict(self) -> dict:
+        """The JSON record of ``bayes-tfcrds linefit`` (and of the demo's ``results.json``)."""
+        lf, ref, n = self.line_fit, self.reference_fit, self.number_density_m3
+        out = {
+            "configuration": self.configuration,
+            "method": self.method,
+            "window": self.window,
+            "t_cut_s": float(self.t_cut_s),
+            "profile": self.profile,
+            "line_area": _area_entry(lf.line_area, lf.line_area_u),
+            "intensity": {"value": float(intensity_to_cm_per_molecule(lf.line_area, n)),
+                          "u_fit_only": float(intensity_to_cm_per_molecule(lf.line_area_u, n)),
+                          "unit": "cm/molecule"},
+            "parameters": {name: {"value": float(v), "u": float(np.sqrt(lf.cov[i, i]))}
+                           for i, (name, v) in enumerate(zip(lf.names, lf.values))},
+            "correlation": {"names": list(lf.names), "matrix": np.round(lf.correlation, 6).tolist()},
+            "chi2_red": self.chi2_red,
+            "unphysical_shape": self.unphysical_shape,
+            "shape_at_bound": self.shape_at_bound,
+            "n_points": self.n_points,
+            "clipped_points": self.clipped_points,
+            "unconverged_points": self.unconverged_points,
+            "record_short_points": self.record_short_points,
+        }
+        if self.calibration is not None:
+            p = self.calibration.params
+            out["transfer_function"] = {"f_c_hz": p.f_c_hz, "a_r": p.a_r, "f_r_hz": p.f_r_hz,
+                                        "gamma_r": p.gamma_r, "n_r": p.n_r, "variant": p.variant,
+                                        "refined": self.calibration.refined is not None}
+        if ref is None:
+            out["reference_area"] = None
+            out["ratio"] = None
+        else:
+            out["reference_area"] = _area_entry(ref.line_area, ref.line_area_u)
+            out["ratio"] = {"value": self.ratio.value, "u": self.ratio.u}
+            out["reference_chi2_red"] = float(ref.chi2_red)
+            out["reference_unphysical_shape"] = list(ref.unphysical)
+        return out
+
+
+def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinction", t_cut_s: float = 4e-6,
+                 profile_name: str = "qsdhcp", calibration=None, physical_bounds: bool = False) -> LineAnalysis:
+    """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare.
+
+    ``physical_bounds`` keeps Gamma2, nu_VC >= 0 in the CRDS line fit (see ``fit.line.fit_line``).
+    """
+    gd = doppler_of(bundle.sample)
+    check_t_cuts(config, [t_cut_s])
+    check_overlap(config)
+    try:
+        if method == "tf-crds" and calibration is None:
+            calibration = calibrate(config, window=window)
+        fits = fit_config(config, [t_cut_s], method=method, window=window, calibration=calibration)
+    except AnalysisError as exc:
+        raise LineFitError(str(exc)) from exc
+    # a decay time whose fit did not converge is not a measurement: left out and counted
+    unconverged = ~fits.converged[:, 0] & np.isfinite(fits.tau_s[:, 0])
+    tau = np.where(unconverged, np.nan, fits.tau_s[:, 0])
+    spec = crds_spectrum(fits.nu_hz, tau, fits.tau_u_s[:, 0])
+    if spec.nu_hz.size < 8:
+        raise LineFitError(f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}")
+    lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz, physical_bounds=physical_bounds)
+    sample = bundle.sample
+    return LineAnalysis(
+        configuration=config.name, method=method, window=window if method == "tf-crds" else None,
+        t_cut_s=float(t_cut_s), profile=profile_name, line_fit=lf,
+        reference_fit=fit_reference(bundle, config, profile_name), spectrum=spec,
+        number_density_m3=number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction),
+        n_points=int(spec.nu_hz.size), clipped_points=int(np.sum(fits.clipped)),
+        unconverged_points=int(np.sum(unconverged)),
+        # decays with less than two decay times of record after t_cut (offset and tau nearly degenerate)
+        record_short_points=int(sum(fits.status(i, 0) == "record-short" for i in range(fits.nu_hz.size))),
+        calibration=calibration)

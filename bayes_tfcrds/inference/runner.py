@@ -1,0 +1,219 @@
+"""The sampler runner: independent emcee ensembles extended until every gate passes."""
+from __future__ import annotations
+
+import json
+import math
+import signal
+import threading
+from typing import Callable, Optional, Sequence
+
+import emcee
+import numpy as np
+from bayes_tfcrds.inference.diagnostics import Gates, _gate_failures, burn_in, chain_diagnostics
+from bayes_tfcrds.inference.result import SamplingResult, _frozen
+from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _StepRecorder, _same_rng_state
+
+
+class _Ensemble:
+    """One emcee ensemble advanced in committed chunks with a continuous random stream."""
+
+    def __init__(self, index, seed, log_prob, p0_fn, n_walkers, ndim, vectorize, pool,
+                 backend_path, chunk_steps, moves=None):
+        init_rng, mcmc_rng = seed.spawn(2)
+        ss = mcmc_rng.bit_generator.seed_seq
+        fingerprint = json.dumps([str(ss.entropy), list(map(int, ss.spawn_key)), n_walkers, ndim])
+        self.index, self.chunk_steps = index, chunk_steps
+        self._p0 = lambda: p0_fn(init_rng, n_walkers)  # only needed for a fresh start
+        self.rng0 = np.random.RandomState(np.random.MT19937(ss)).get_state()
+        self.sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, pool=pool, moves=moves,
+                                             vectorize=vectorize, backend=_StepRecorder())
+        self.store = (_MemoryStore(n_walkers, ndim, fingerprint) if backend_path is None else
+                      _HDFStore(backend_path, f"ensemble{index}", n_walkers, ndim, fingerprint))
+        self.state = None
+
+    def _initial_state(self):
+        if self.store.iteration > 0:
+            coords, lp, rs = self.store.last()
+            return emcee.State(np.array(coords), log_prob=np.array(lp), random_state=rs)
+        p0 = np.array(self._p0(), dtype=float)
+        shape = (self.sampler.nwalkers, self.sampler.ndim)
+        if p0.shape != shape:
+            raise ValueError(f"p0_fn returned shape {p0.shape}, need {shape}")
+        lp, _ = self.sampler.compute_log_prob(p0)
+        if not np.all(np.isfinite(lp)):
+            raise ValueError(f"ensemble {self.index}: p0_fn returned walkers with non-finite "
+                             f"log_prob {lp[~np.isfinite(lp)]} (outside the prior?)")
+        return emcee.State(p0, log_prob=lp, random_state=self.rng0)
+
+    def advance_to(self, n_total, pbar=None, stop=None):
+        """Run until the committed chain holds ``n_total`` steps (no-op if it already does);
+        on a ``stop`` request commit the steps taken so far and raise KeyboardInterrupt."""
+        while self.store.iteration < n_total:
+            if self.state is None:
+                self.state = self._initial_state()
+            self.sampler.random_state = self.state.random_state
+            if not _same_rng_state(self.sampler.random_state, self.state.random_state):
+                raise RuntimeError("could not restore the sampler's random state")
+            k = min(self.chunk_steps, n_total - self.store.iteration)
+            rec = self.sampler.backend
+            rec.reset(self.sampler.nwalkers, self.sampler.ndim)
+            for st in self.sampler.sample(self.state, iterations=k, store=True,
+                                          skip_initial_state_check=self.store.iteration > 0):
+                if pbar is not None:
+                    pbar.update(1)
+                if stop is not None and stop.requested:
+                    break                  # the chain does not depend on where chunks end
+            rs = self.sampler.random_state
+            self.store.append(rec.get_chain(), rec.get_log_prob(),
+                              np.array(rec.accepted_steps), rs)
+            self.state = emcee.State(st.coords.copy(), log_prob=st.log_prob.copy(),
+                                     random_state=rs)
+            if stop is not None and stop.requested:
+                raise KeyboardInterrupt
+
+    def read(self, n):
+        return self.store.read(n)
+
+
+class _StopRequest:
+    """Ctrl-C while sampling: finish and commit the step in progress, then stop.
+
+    Python's default handler would raise KeyboardInterrupt inside log_prob, where emcee prints
+    a traceback and discards the chunk. Installed only over the default handler and in the
+    main thread; a second Ctrl-C interrupts at once.
+    """
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def __enter__(self):
+        if (threading.current_thread() is threading.main_thread()
+                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+            self._old = signal.signal(signal.SIGINT, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        self.requested = True
+        signal.signal(signal.SIGINT, self._old)
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+# --------------------------------------------------------------------------- runner
+def _evaluate(names, chains, log_prob, accepted, derived_fn, gates, label) -> SamplingResult:
+    n = chains.shape[1]
+    burn = burn_in(chains)
+    kept, lp_kept, acc_kept = chains[:, burn:], log_prob[:, burn:], accepted[:, burn:]
+    diagnostics = {nm: chain_diagnostics(kept[..., i]) for i, nm in enumerate(names)}
+    derived = {}
+    if derived_fn is not None:
+        shape = kept.shape[:3]
+        for nm, v in derived_fn(kept.reshape(-1, kept.shape[-1])).items():
+            if nm in diagnostics:
+                raise ValueError(f"derived quantity {nm!r} clashes with a parameter name")
+            derived[nm] = _frozen(np.asarray(v, dtype=float).reshape(shape))
+            diagnostics[nm] = chain_diagnostics(derived[nm])
+    failures = _gate_failures(diagnostics, gates)
+    status = "passed" if not failures else f"failed after {n} steps: " + "; ".join(failures)
+    rh = [d["rhat"] for d in diagnostics.values()]
+    es = [min(d["ess_bulk"], d["ess_tail"]) for d in diagnostics.values()]
+    return SamplingResult(
+        names=tuple(names), samples=_frozen(kept), log_prob=_frozen(lp_kept),
+        diagnostics=diagnostics,
+        rhat_max=float(np.nan if np.any(np.isnan(rh)) else max(rh)),
+        ess_min=float(np.nan if np.any(np.isnan(es)) else min(es)),
+        passed=not failures, status=status, n_steps=n, burn=burn,
+        acceptance=_frozen(acc_kept.mean(axis=(1, 2))), derived=derived, gates=gates,
+        label=label,
+    )
+
+
+def run_ensembles(
+    log_prob: Callable,
+    p0_fn: Callable,
+    names: Sequence[str],
+    rng: np.random.Generator,
+    n_ensembles: int = 4,
+    n_walkers: Optional[int] = None,
+    n_steps: int = 2000,
+    max_steps: int = 20000,
+    vectorize: bool = False,
+    backend_path=None,
+    progress: bool = False,
+    label: str = "",
+    pool=None,
+    gates: Gates = Gates(),
+    *,
+    derived_fn: Optional[Callable] = None,
+    chunk_steps: int = 100,
+    moves=None,
+) -> SamplingResult:
+    """Sample ``log_prob`` with independent emcee ensembles until the gates pass or ``max_steps``.
+
+    log_prob: ``theta (ndim,) -> float``, or with ``vectorize=True``
+        ``thetas (n_walkers, ndim) -> (n_walkers,)``; ``-inf`` outside the prior.
+    p0_fn: ``(rng, n_walkers) -> (n_walkers, ndim)`` starting positions (finite log_prob).
+    rng: a ``numpy.random.Generator``; a fresh ``default_rng(seed)`` reproduces the run bit
+        for bit (children are spawned from it, so reusing one object gives new chains).
+    n_walkers: default ``max(32, 4 * ndim)``.
+    n_steps, max_steps: first and largest total length per ensemble (burn-in included).
+    backend_path: HDF5 file to commit chunks to and resume from (see module docstring).
+    progress: one tqdm bar per ensemble, labelled with ``label``.
+    pool: object with ``map`` passed to emcee (ignored by emcee when ``vectorize``).
+    derived_fn: ``samples (n, ndim) -> {name: (n,) array}``; derived quantities get the
+        same diagnostics and gates as the parameters.
+    chunk_steps: steps between commits; the chains do not depend on it.
+
+    Returns a :class:`SamplingResult`; a failed gate is reported there (``passed=False``),
+    never raised and never hidden.
+    """
+    names = tuple(str(n) for n in names)
+    ndim = len(names)
+    if len(set(names)) != ndim or ndim == 0:
+        raise ValueError(f"need unique, non-empty parameter names, got {names}")
+    if n_ensembles < 4:
+        raise ValueError("R-hat needs at least 4 independent ensembles")
+    n_walkers = max(32, 4 * ndim) if n_walkers is None else int(n_walkers)
+    if n_walkers < 2 * ndim:
+        raise ValueError(f"emcee's stretch move needs n_walkers >= 2*ndim = {2 * ndim}")
+    if not 1 <= n_steps <= max_steps:
+        raise ValueError(f"need 1 <= n_steps ({n_steps}) <= max_steps ({max_steps})")
+    if chunk_steps < 1:
+        raise ValueError("chunk_steps must be >= 1")
+
+    ensembles = [
+        _Ensemble(i, s, log_prob, p0_fn, n_walkers, ndim, vectorize, pool, backend_path, moves=moves, chunk_steps=
+                  int(chunk_steps))
+        for i, s in enumerate(rng.spawn(n_ensembles))
+    ]
+    bars = []
+    if progress:
+        from tqdm.auto import tqdm
+        prefix = f"{label} " if label else ""
+        bars = [tqdm(total=n_steps, initial=min(e.store.iteration, n_steps),
+                     desc=f"{prefix}ensemble {e.index}", position=e.index, leave=True)
+                for e in ensembles]
+    stop = _StopRequest()
+    try:
+        stop.__enter__()
+        target = int(n_steps)
+        while True:
+            for i, e in enumerate(ensembles):
+                if bars:
+                    bars[i].total = target
+                    bars[i].refresh()
+                e.advance_to(target, bars[i] if bars else None, stop)
+            parts = [e.read(target) for e in ensembles]
+            chains, lps, acc = (np.stack(p) for p in zip(*parts))
+            result = _evaluate(names, chains, lps, acc, derived_fn, gates, label)
+            if result.passed or target >= max_steps:
+                return result
+            target = min(int(max_steps), target + math.ceil(0.5 * target))
+    finally:
+        stop.__exit__()
+        for b in bars:
+            b.close()

@@ -1,0 +1,17 @@
+"""Matplotlib for files: the non-interactive Agg backend, chosen in one place.
+
+Every figure the toolkit draws goes to a PNG, a PDF or an HTML report, never to a window, so
+the backend is set before pyplot is first imported (it also keeps CI and workers headless).
+"""
+
+from __future__ import annotations
+
+
+def pyplot():
+    """``matplotlib.pyplot`` with the Agg backend selected."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

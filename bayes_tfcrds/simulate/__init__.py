@@ -1,0 +1,5 @@
+"""The simulator of the whole experiment: campaigns of ring-downs, beat notes and CMDS with a
+known truth and injectable effects.
+
+May import: core, output, bundle, physics.
+"""

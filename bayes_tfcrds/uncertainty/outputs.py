@@ -1,0 +1,50 @@
+"""The files of a budget run: budget.json, the GUM tables, decay-time posteriors, netCDF and corners."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from bayes_tfcrds.output.files import TEMP_GLOB, atomic_path, atomic_write_text
+from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.uncertainty.line_budget import BudgetResult
+
+
+def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list:
+    """budget.json, budget tables (Markdown, CSV), posteriors (arviz netCDF) and corner plots.
+
+    Every file goes through a temporary name and a rename, so none is ever half-written.
+    """
+    import corner
+    plt = pyplot()
+
+    out = Path(outdir)
+    out.mkdir(parents=True, exist_ok=True)
+    # temporary files left by an earlier run that was killed while writing (names as below)
+    for stale in out.glob(TEMP_GLOB):
+        stale.unlink(missing_ok=True)
+    written = []
+    summary = dict(result.summary)
+    if seed is not None:
+        summary["seed"] = seed
+    atomic_write_text(out / "budget.json", json.dumps(summary, indent=2, default=float) + "\n")
+    written.append(out / "budget.json")
+    tables = [result.budget_a, result.budget_s] + ([result.budget_ratio] if result.budget_ratio is not None else [])
+    md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
+    atomic_write_text(out / "budget.md", md + "\n")
+    atomic_write_text(out / "budget.csv", result.budget_a.to_csv())
+    lines = ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"] + [
+        f"{nu:.9f},{tc:.6e},{tau:.10e},{un:.4e},{uh:.4e},{u:.4e}" for nu, tc, tau, un, uh, u in result.tau_table]
+    atomic_write_text(out / "tau_posterior.csv", "\n".join(lines) + "\n")
+    written += [out / "budget.md", out / "budget.csv", out / "tau_posterior.csv"]
+    for key, run in result.runs.items():
+        path = out / f"posterior_{key}.nc"
+        run.save_netcdf(path)
+        written.append(path)
+        fig = corner.corner(run.flat(), labels=list(run.names), show_titles=True, title_fmt=".3g")
+        with atomic_path(out / f"corner_{key}.png", suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=70)
+        plt.close(fig)
+        written.append(out / f"corner_{key}.png")
+    return written
+
