@@ -10,7 +10,7 @@ The pipeline, one subpackage per stage (imports go one way, down this list)::
     fit         beat note, ring-downs, Appendix B refinement, H calibration, spectra, line fits
     inference   emcee runner, diagnostics, chain stores, posterior densities
     uncertainty propagation of H into tau and A, the line-area budget and its outputs
-    discover    discovery of the effect a model of the experiment is missing
+    discovery   discovery of the effect a model of the experiment is missing
     studies     declarative studies, the coverage study and the demo
     cli         ``bayes-tfcrds``: parses, calls, prints
 
@@ -58,8 +58,8 @@ _API = {
     "BudgetResult": "bayes_tfcrds.uncertainty.line_budget",
     "run_budget": "bayes_tfcrds.uncertainty.line_budget",
     "write_outputs": "bayes_tfcrds.uncertainty.outputs",
-    "discover": "bayes_tfcrds.discover.workflow",
-    "DiscoveryResult": "bayes_tfcrds.discover.workflow",
+    "discover": "bayes_tfcrds.discovery.workflow",
+    "DiscoveryResult": "bayes_tfcrds.discovery.workflow",
     "run_study": "bayes_tfcrds.studies.registry",
     "run_demo": "bayes_tfcrds.studies.demo",
 }
@@ -101,7 +101,7 @@ def __getattr__(name: str):
     if module is None:
         raise AttributeError(f"module 'bayes_tfcrds' has no attribute {name!r}")
     value = getattr(importlib.import_module(module), name)
-    globals()[name] = value           # later look-ups skip this function
+    globals()[name] = value  # later look-ups skip this function
     return value
 
 
@@ -114,7 +114,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from bayes_tfcrds.bundle.records import Bundle, BundleError
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.core.quantity import Quantity
-    from bayes_tfcrds.discover.workflow import DiscoveryResult, discover
+    from bayes_tfcrds.discovery.workflow import DiscoveryResult, discover
     from bayes_tfcrds.fit.h_calibration import Calibration, calibrate
     from bayes_tfcrds.fit.line import LineFit, fit_line
     from bayes_tfcrds.fit.line_analysis import LineAnalysis, analyse_line

@@ -3,6 +3,7 @@
 Every command takes ``--seed`` (the same inputs and seed give the same numbers) and reports
 bad input as one clear message naming what is wrong, with exit status 1 or 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -19,7 +20,9 @@ def _floats(text: str):
     try:
         return [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated numbers in seconds, got {text!r}")
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated numbers in seconds, got {text!r}"
+        ) from None
 
 
 def _one_float(text: str):
@@ -32,30 +35,37 @@ def _one_float(text: str):
 def _config(bundle, name):
     if name is None:
         if len(bundle.configs) != 1:
-            raise SystemExit(f"error: the bundle has configurations {list(bundle.configs)}; choose one with --config")
+            raise SystemExit(
+                f"error: the bundle has configurations {list(bundle.configs)}; choose one with "
+                "--config"
+            )
         return next(iter(bundle.configs.values()))
     if name not in bundle.configs:
-        raise SystemExit(f"error: no configuration {name!r} in the bundle (it has {list(bundle.configs)})")
+        raise SystemExit(
+            f"error: no configuration {name!r} in the bundle (it has {list(bundle.configs)})"
+        )
     return bundle.configs[name]
 
 
 def _load(path):
-    from bayes_tfcrds.bundle.records import BundleError
     from bayes_tfcrds.bundle.reader import load_bundle
+    from bayes_tfcrds.bundle.records import BundleError
+
     try:
         return load_bundle(path)
     except BundleError as exc:
-        raise SystemExit(f"error: {exc}")
-
+        raise SystemExit(f"error: {exc}") from None
 
 
 def cmd_validate(args) -> int:
     from bayes_tfcrds.bundle.summary import main_validate
+
     return main_validate(args.file)
 
 
 def cmd_fit(args) -> int:
     from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     cal = None
@@ -63,9 +73,14 @@ def cmd_fit(args) -> int:
         if args.method == "tf-crds":
             cal = calibrate(config, window=args.window, refine=args.h == "refined")
             p = cal.params
-            print(f"# H: f_c={p.f_c_hz:.6g} Hz a_r={p.a_r:.6g} f_r={p.f_r_hz:.6g} Hz gamma_r={p.gamma_r:.4g} "
-                  f"n_r={p.n_r:.3g} ({args.h})", file=sys.stderr)
-        fits = fit_config(config, args.tcut, method=args.method, window=args.window, calibration=cal)
+            print(
+                f"# H: f_c={p.f_c_hz:.6g} Hz a_r={p.a_r:.6g} f_r={p.f_r_hz:.6g} Hz "
+                f"gamma_r={p.gamma_r:.4g} n_r={p.n_r:.3g} ({args.h})",
+                file=sys.stderr,
+            )
+        fits = fit_config(
+            config, args.tcut, method=args.method, window=args.window, calibration=cal
+        )
     except (AnalysisError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -73,19 +88,31 @@ def cmd_fit(args) -> int:
     n_clip = int(fits.clipped.sum())
     n_sat = int(np.sum(config.ringdowns.saturated))
     n_short = sum(row[-1] == "record-short" for row in fits.rows())
-    print(f"wrote {args.output}: {fits.tau_s.size} fits ({args.method}"
-          f"{', ' + args.window if args.method == 'tf-crds' else ''})"
-          + (f"; {n_clip} clipped transients not fitted (status clipped"
-             + (f"; {n_sat} of them saturated below the digitizer rails" if n_sat else "")
-             + "; bayes-tfcrds validate lists them)" if n_clip else "")
-          + (f"; warning: {n_short} fits have less than two decay times of record after t_cut "
-             "(status record-short)" if n_short else ""), file=sys.stderr)
+    print(
+        f"wrote {args.output}: {fits.tau_s.size} fits "
+        f"({args.method}{', ' + args.window if args.method == 'tf-crds' else ''})"
+        + (
+            f"; {n_clip} clipped transients not fitted (status clipped"
+            + (f"; {n_sat} of them saturated below the digitizer rails" if n_sat else "")
+            + "; bayes-tfcrds validate lists them)"
+            if n_clip
+            else ""
+        )
+        + (
+            f"; warning: {n_short} fits have less than two decay times of record after t_cut "
+            "(status record-short)"
+            if n_short
+            else ""
+        ),
+        file=sys.stderr,
+    )
     return 0
 
 
 def cmd_simulate(args) -> int:
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.simulate.campaign import Campaign, parse_effect, simulate_campaign
+
     effects = {}
     try:
         for text in args.effect or []:
@@ -99,19 +126,31 @@ def cmd_simulate(args) -> int:
         return 2
     save_bundle(bundle, args.output, truth=truth)
     m = next(iter(bundle.configs.values())).ringdowns.n_points
-    print(f"wrote {args.output}: configurations {list(bundle.configs)}, "
-          f"{m} cavity modes x {campaign.n_samples} samples, seed {args.seed}", file=sys.stderr)
+    print(
+        f"wrote {args.output}: configurations {list(bundle.configs)}, {m} cavity modes x "
+        f"{campaign.n_samples} samples, seed {args.seed}",
+        file=sys.stderr,
+    )
     return 0
 
 
 def cmd_linefit(args) -> int:
     import json
+
     from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line
+
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     try:
-        result = analyse_line(bundle, config, method=args.method, window=args.window, t_cut_s=args.tcut[0],
-                              profile_name=args.profile, physical_bounds=args.shape_bounds == "physical")
+        result = analyse_line(
+            bundle,
+            config,
+            method=args.method,
+            window=args.window,
+            t_cut_s=args.tcut[0],
+            profile_name=args.profile,
+            physical_bounds=args.shape_bounds == "physical",
+        )
     except (LineFitError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 1
@@ -119,10 +158,15 @@ def cmd_linefit(args) -> int:
     for line in _linefit_warnings(result, args.tcut[0]):
         print(line, file=sys.stderr)
     la, ra, q = result.line_area, result.reference_area, result.ratio
-    print(f"A = {la.value:.6e} +/- {la.u:.2e} {la.unit}; "
-          + ("no CMDS reference in this configuration" if ra is None else
-             f"A_ref = {ra.value:.6e} +/- {ra.u:.2e}; "
-             f"A/A_ref = {q.value:.5f} +/- {q.u:.5f}"), file=sys.stderr)
+    print(
+        f"A = {la.value:.6e} +/- {la.u:.2e} {la.unit}; "
+        + (
+            "no CMDS reference in this configuration"
+            if ra is None
+            else f"A_ref = {ra.value:.6e} +/- {ra.u:.2e}; A/A_ref = {q.value:.5f} +/- {q.u:.5f}"
+        ),
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -130,41 +174,60 @@ def _linefit_warnings(result, t_cut_s: float) -> list[str]:
     """What a reader of a line fit must be told: points left out, short records, the shape."""
     lines = []
     if result.clipped_points:
-        lines.append(f"warning: {result.clipped_points} clipped or saturated transients were left out of the "
-                     "spectrum (bayes-tfcrds validate lists them)")
+        lines.append(
+            f"warning: {result.clipped_points} clipped or saturated transients were left out of "
+            "the spectrum (bayes-tfcrds validate lists them)"
+        )
     if result.unconverged_points:
-        lines.append(f"warning: {result.unconverged_points} decay-time fits did not converge and were left out of "
-                     "the spectrum (bayes-tfcrds fit lists them as not-converged)")
+        lines.append(
+            f"warning: {result.unconverged_points} decay-time fits did not converge and were left "
+            "out of the spectrum (bayes-tfcrds fit lists them as not-converged)"
+        )
     if result.record_short_points:
-        lines.append(f"warning: {result.record_short_points} decay times come from less than two decay times of "
-                     f"record after t_cut = {t_cut_s:g} s (offset and tau nearly degenerate)")
+        lines.append(
+            f"warning: {result.record_short_points} decay times come from less than two decay "
+            f"times of record after t_cut = {t_cut_s:g} s (offset and tau nearly degenerate)"
+        )
     if result.unphysical_shape:
-        lines.append(f"warning: {', '.join(result.unphysical_shape)} ended below 0 (on the profile's continuation): "
-                     "the line shape is not physical, often a sign that the model of the experiment is wrong "
-                     "(plain CRDS of a distorted chain?); --shape-bounds physical holds them at 0")
+        lines.append(
+            f"warning: {', '.join(result.unphysical_shape)} ended below 0 (on the profile's "
+            "continuation): the line shape is not physical, often a sign that the model of the "
+            "experiment is wrong (plain CRDS of a distorted chain?); --shape-bounds physical "
+            "holds them at 0"
+        )
     if result.shape_at_bound:
-        lines.append(f"note: {', '.join(result.shape_at_bound)} held at 0 by --shape-bounds physical")
+        lines.append(
+            f"note: {', '.join(result.shape_at_bound)} held at 0 by --shape-bounds physical"
+        )
     return lines
 
 
 def cmd_demo(args) -> int:
     """Simulate a letter-like campaign (D1-D4) and analyse it: CRDS vs TF-CRDS against CMDS."""
     from bayes_tfcrds.studies.demo import run_demo
-    result = run_demo(args.output, seed=args.seed, quick=args.quick,
-                      log=lambda line: print(line, file=sys.stderr))
+
+    result = run_demo(
+        args.output, seed=args.seed, quick=args.quick, log=lambda line: print(line, file=sys.stderr)
+    )
     print("\n".join(result.summary_lines()))
-    print(f"\nwrote {result.bundle_path}, {result.results_path}, {result.summary_path}", file=sys.stderr)
+    print(
+        f"\nwrote {result.bundle_path}, {result.results_path}, {result.summary_path}",
+        file=sys.stderr,
+    )
     return 0
 
 
 def cmd_budget(args) -> int:
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.fit.line_analysis import LineFitError
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
     from bayes_tfcrds.uncertainty.outputs import write_outputs
-    from bayes_tfcrds.fit.line_analysis import LineFitError
-    from bayes_tfcrds.fit.h_calibration import AnalysisError
+
     bundle = _load(args.file)
     config = _config(bundle, args.config)
-    opts = BudgetOptions(method=args.method, window=args.window, t_cut_s=args.tcut[0], profile=args.profile)
+    opts = BudgetOptions(
+        method=args.method, window=args.window, t_cut_s=args.tcut[0], profile=args.profile
+    )
     if args.steps is not None or args.max_steps is not None:
         try:
             opts = opts.with_steps(args.steps, args.max_steps)
@@ -173,37 +236,58 @@ def cmd_budget(args) -> int:
             return 2
     try:
         try:
-            res = run_budget(bundle, config, opts, np.random.default_rng(args.seed), outdir=args.output,
-                             progress=not args.quiet)
+            res = run_budget(
+                bundle,
+                config,
+                opts,
+                np.random.default_rng(args.seed),
+                outdir=args.output,
+                progress=not args.quiet,
+            )
         except (LineFitError, AnalysisError, ValueError) as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 1
         write_outputs(res, args.output, seed=args.seed)
     except KeyboardInterrupt:
-        print(f"\ninterrupted: the chains sampled so far are kept in {Path(args.output) / 'chains_*.h5'}; "
-              "run the same command again to resume (same seed, same result)", file=sys.stderr)
+        print(
+            "\ninterrupted: the chains sampled so far are kept in "
+            f"{Path(args.output) / 'chains_*.h5'}; run the same command again to resume (same "
+            "seed, same result)",
+            file=sys.stderr,
+        )
         return 130
     print(res.budget_a.to_markdown())
     if not res.passed:
-        print(f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})", file=sys.stderr)
+        print(
+            f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})",
+            file=sys.stderr,
+        )
         return 3
     a, q, s = res.line_area, res.ratio, res.intensity
-    print(f"\nA = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = {res.en:.2f};  "
-          f"S = {s.value:.5e} +/- {s.u:.2e} cm/molecule", file=sys.stderr)
+    print(
+        f"\nA = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = "
+        f"{res.en:.2f};  S = {s.value:.5e} +/- {s.u:.2e} cm/molecule",
+        file=sys.stderr,
+    )
     return 0
 
 
 def cmd_study(args) -> int:
+    from concurrent.futures import ProcessPoolExecutor
+
     from bayes_tfcrds.studies.registry import run_study
     from bayes_tfcrds.studies.spec import StudyError
-    from concurrent.futures import ProcessPoolExecutor
+
     try:
         if args.workers > 1:
             with ProcessPoolExecutor(max_workers=args.workers) as pool:
-                html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet, pool=pool,
-                                                seed=args.seed)
+                html_path, pdf_path = run_study(
+                    args.file, args.output, progress=not args.quiet, pool=pool, seed=args.seed
+                )
         else:
-            html_path, pdf_path = run_study(args.file, args.output, progress=not args.quiet, seed=args.seed)
+            html_path, pdf_path = run_study(
+                args.file, args.output, progress=not args.quiet, seed=args.seed
+            )
     except StudyError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -212,20 +296,30 @@ def cmd_study(args) -> int:
 
 
 def cmd_discover(args) -> int:
-    from bayes_tfcrds.discover.workflow import DISCOVERY_T_CUTS, discover, parse_model
-    from bayes_tfcrds.discover.report import write_report
+    from bayes_tfcrds.discovery.report import write_report
+    from bayes_tfcrds.discovery.workflow import DISCOVERY_T_CUTS, discover, parse_model
+
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     try:
         start = parse_model(args.start)
-        result = discover(bundle, config.name, start, t_cuts=args.tcut or DISCOVERY_T_CUTS, threshold=args.threshold,
-                          progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)))
+        result = discover(
+            bundle,
+            config.name,
+            start,
+            t_cuts=args.tcut or DISCOVERY_T_CUTS,
+            threshold=args.threshold,
+            progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)),
+        )
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     json_path, html_path = write_report(result, args.output, seed=args.seed, inputs=[args.file])
-    print(f"effects added: {', '.join(result.effects_added) or 'none'} ({result.seconds:.1f} s); "
-          f"wrote {json_path} and {html_path}", file=sys.stderr)
+    print(
+        f"effects added: {', '.join(result.effects_added) or 'none'} ({result.seconds:.1f} s); "
+        f"wrote {json_path} and {html_path}",
+        file=sys.stderr,
+    )
     return 0
 
 
@@ -233,7 +327,12 @@ class _HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
     """Shows an option's default where it has one (not for required options, flags or None)."""
 
     def _get_help_string(self, action):
-        if action.required or action.default is None or action.default is False or action.help is None:
+        if (
+            action.required
+            or action.default is None
+            or action.default is False
+            or action.help is None
+        ):
             return action.help
         return super()._get_help_string(action)
 
@@ -247,8 +346,10 @@ def _common(sp, seed=0, note=""):
 
 def _add_validate(sub) -> None:
     """The ``validate`` command's options."""
-    sp = _common(sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
-                note=" (validate draws no random numbers)")
+    sp = _common(
+        sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
+        note=" (validate draws no random numbers)",
+    )
     sp.add_argument("file", help="measurement bundle (HDF5)")
     sp.set_defaults(func=cmd_validate)
 
@@ -258,13 +359,32 @@ def _add_fit(sub) -> None:
     sp = _common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
-                    help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
-    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
-                    help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
-    sp.add_argument("--tcut", type=_floats, default=[2e-6, 4e-6, 8e-6], help="t_cut values in s, comma-separated")
-    sp.add_argument("--transfer-function", dest="h", choices=["refined", "beat"], default="refined",
-                    help="H for TF-CRDS: the beat-note fit refined on ring-downs, or the beat-note fit alone")
+    sp.add_argument(
+        "--method",
+        choices=["crds", "tf-crds"],
+        default="tf-crds",
+        help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)",
+    )
+    sp.add_argument(
+        "--window",
+        choices=["extinction", "letter"],
+        default="extinction",
+        help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the "
+        "letter's)",
+    )
+    sp.add_argument(
+        "--tcut",
+        type=_floats,
+        default=[2e-6, 4e-6, 8e-6],
+        help="t_cut values in s, comma-separated",
+    )
+    sp.add_argument(
+        "--transfer-function",
+        dest="h",
+        choices=["refined", "beat"],
+        default="refined",
+        help="H for TF-CRDS: the beat-note fit refined on ring-downs, or the beat-note fit alone",
+    )
     sp.add_argument("-o", "--output", required=True, help="CSV file to write")
     sp.set_defaults(func=cmd_fit)
 
@@ -272,13 +392,23 @@ def _add_fit(sub) -> None:
 def _add_simulate(sub) -> None:
     """The ``simulate`` command's options."""
     from bayes_tfcrds.simulate.campaign import Campaign
+
     sp = _common(sub.add_parser("simulate", help="simulate a letter-like campaign into a bundle"))
-    sp.add_argument("--preset", action="append", help="letter-D1 ... letter-D4 (repeatable; default letter-D2)")
-    sp.add_argument("--effect", action="append", help="NAME[:key=value,...] (repeatable), e.g. "
-                    "static_nonlinearity:beta=-3e-3")
-    sp.add_argument("--points", type=int, default=Campaign.n_points,
-                    help="spectral points requested (modes that coincide on the FSR grid are dropped: the "
-                         "default span of +/- 10 GHz holds 99)")
+    sp.add_argument(
+        "--preset", action="append", help="letter-D1 ... letter-D4 (repeatable; default letter-D2)"
+    )
+    sp.add_argument(
+        "--effect",
+        action="append",
+        help="NAME[:key=value,...] (repeatable), e.g. static_nonlinearity:beta=-3e-3",
+    )
+    sp.add_argument(
+        "--points",
+        type=int,
+        default=Campaign.n_points,
+        help="spectral points requested (modes that coincide on the FSR grid are dropped: the "
+        "default span of +/- 10 GHz holds 99)",
+    )
     sp.add_argument("--samples", type=int, default=Campaign.n_samples, help="samples per transient")
     sp.add_argument("-o", "--output", required=True, help="bundle (HDF5) to write")
     sp.set_defaults(func=cmd_simulate)
@@ -286,18 +416,39 @@ def _add_simulate(sub) -> None:
 
 def _add_linefit(sub) -> None:
     """The ``linefit`` command's options."""
-    sp = _common(sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS"))
+    sp = _common(
+        sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS")
+    )
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
-                    help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
-    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
-                    help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
+    sp.add_argument(
+        "--method",
+        choices=["crds", "tf-crds"],
+        default="tf-crds",
+        help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)",
+    )
+    sp.add_argument(
+        "--window",
+        choices=["extinction", "letter"],
+        default="extinction",
+        help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the "
+        "letter's)",
+    )
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
-    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp", help="line profile fitted to the spectrum")
-    sp.add_argument("--shape-bounds", choices=["free", "physical"], default="free",
-                    help="free: Gamma2 and nu_VC may go below 0 on the profile's continuation (unbiased when the "
-                         "model is right; such fits are flagged); physical: held at >= 0, as the letter reads its fits")
+    sp.add_argument(
+        "--profile",
+        choices=["voigt", "sdvp", "rautian", "qsdhcp"],
+        default="qsdhcp",
+        help="line profile fitted to the spectrum",
+    )
+    sp.add_argument(
+        "--shape-bounds",
+        choices=["free", "physical"],
+        default="free",
+        help="free: Gamma2 and nu_VC may go below 0 on the profile's continuation (unbiased when "
+        "the model is right; such fits are flagged); physical: held at >= 0, as the letter reads "
+        "its fits",
+    )
     sp.add_argument("-o", "--output", required=True, help="JSON file to write")
     sp.set_defaults(func=cmd_linefit)
 
@@ -305,19 +456,44 @@ def _add_linefit(sub) -> None:
 def _add_budget(sub) -> None:
     """The ``budget`` command's options."""
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
-    sp = _common(sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS"))
+
+    sp = _common(
+        sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS")
+    )
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--method", choices=["crds", "tf-crds"], default="tf-crds",
-                    help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)")
-    sp.add_argument("--window", choices=["extinction", "letter"], default="extinction",
-                    help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the letter's)")
+    sp.add_argument(
+        "--method",
+        choices=["crds", "tf-crds"],
+        default="tf-crds",
+        help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)",
+    )
+    sp.add_argument(
+        "--window",
+        choices=["extinction", "letter"],
+        default="extinction",
+        help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the "
+        "letter's)",
+    )
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
-    sp.add_argument("--profile", choices=["voigt", "sdvp", "rautian", "qsdhcp"], default="qsdhcp", help="line profile fitted to the spectrum")
-    sp.add_argument("--steps", type=int, default=BudgetOptions.n_steps,
-                    help="MCMC steps per ensemble before the convergence gates are checked")
-    sp.add_argument("--max-steps", type=int, help="longest run per ensemble; a run still missing a gate then is "
-                                                  "reported as failed (default max(8 x steps, 24000))")
+    sp.add_argument(
+        "--profile",
+        choices=["voigt", "sdvp", "rautian", "qsdhcp"],
+        default="qsdhcp",
+        help="line profile fitted to the spectrum",
+    )
+    sp.add_argument(
+        "--steps",
+        type=int,
+        default=BudgetOptions.n_steps,
+        help="MCMC steps per ensemble before the convergence gates are checked",
+    )
+    sp.add_argument(
+        "--max-steps",
+        type=int,
+        help="longest run per ensemble; a run still missing a gate then is reported as failed "
+        "(default max(8 x steps, 24000))",
+    )
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.set_defaults(func=cmd_budget)
@@ -325,34 +501,55 @@ def _add_budget(sub) -> None:
 
 def _add_study(sub) -> None:
     """The ``study`` command's options."""
-    sp = _common(sub.add_parser("study", help="run a declared study and write its report"), seed=None,
-                note=" (default: the [study] seed of the file)")
+    sp = _common(
+        sub.add_parser("study", help="run a declared study and write its report"),
+        seed=None,
+        note=" (default: the [study] seed of the file)",
+    )
     sp.add_argument("file", help="study file (TOML), e.g. studies/letter_tcut.toml")
-    sp.add_argument("-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/")
+    sp.add_argument(
+        "-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/"
+    )
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
-    sp.add_argument("--workers", type=int, default=2, help="local worker processes (2 uses both cores)")
+    sp.add_argument(
+        "--workers", type=int, default=2, help="local worker processes (2 uses both cores)"
+    )
     sp.set_defaults(func=cmd_study)
 
 
 def _add_discover(sub) -> None:
     """The ``discover`` command's options."""
-    sp = _common(sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
-                note=" (discovery is deterministic; the seed is recorded)")
+    sp = _common(
+        sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
+        note=" (discovery is deterministic; the seed is recorded)",
+    )
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument("--start", default="crds+voigt",
-                    help="starting model: crds+voigt, or canonical effect names joined by ',' or '+', "
-                         "e.g. transfer_function,window_history,speed_dependence")
-    sp.add_argument("--tcut", type=_floats, default=None, help="t_cut values in s (default 2e-6,4e-6,6e-6)")
-    sp.add_argument("--threshold", type=float, default=10.0, help="Delta BIC an effect needs to be added")
+    sp.add_argument(
+        "--start",
+        default="crds+voigt",
+        help="starting model: crds+voigt, or canonical effect names joined by ',' or '+', e.g. "
+        "transfer_function,window_history,speed_dependence",
+    )
+    sp.add_argument(
+        "--tcut", type=_floats, default=None, help="t_cut values in s (default 2e-6,4e-6,6e-6)"
+    )
+    sp.add_argument(
+        "--threshold", type=float, default=10.0, help="Delta BIC an effect needs to be added"
+    )
     sp.add_argument("--quiet", action="store_true", help="no progress bars")
-    sp.add_argument("-o", "--output", required=True, help="output folder (discovery.json, discovery.html)")
+    sp.add_argument(
+        "-o", "--output", required=True, help="output folder (discovery.json, discovery.html)"
+    )
     sp.set_defaults(func=cmd_discover)
 
 
 def _add_demo(sub) -> None:
     """The ``demo`` command's options."""
-    sp = _common(sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"), seed=7)
+    sp = _common(
+        sub.add_parser("demo", help="simulate a letter-like campaign (D1-D4) and analyse it"),
+        seed=7,
+    )
     sp.add_argument("-o", "--output", default="demo-out", help="output folder")
     sp.add_argument("--quick", action="store_true", help="a smaller campaign (for a first look)")
     sp.set_defaults(func=cmd_demo)
@@ -360,16 +557,25 @@ def _add_demo(sub) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The ``bayes-tfcrds`` argument parser: one sub-command per job."""
-    p = argparse.ArgumentParser(prog="bayes-tfcrds",
-                                description="Transfer-function-corrected CRDS with honest uncertainty budgets. "
-                                            "The data contract (HDF5 measurement bundle) is FORMAT.md, shipped in "
-                                            "bayes_tfcrds/data/.")
+    p = argparse.ArgumentParser(
+        prog="bayes-tfcrds",
+        description="Transfer-function-corrected CRDS with honest uncertainty budgets. The data "
+        "contract (HDF5 measurement bundle) is FORMAT.md, shipped in bayes_tfcrds/data/.",
+    )
     p.add_argument("--version", action="version", version=f"bayes-tfcrds {__version__}")
     sub = p.add_subparsers(dest="command", required=True)
-    for add in (_add_validate, _add_fit, _add_simulate, _add_linefit, _add_budget, _add_study, _add_discover, _add_demo):
+    for add in (
+        _add_validate,
+        _add_fit,
+        _add_simulate,
+        _add_linefit,
+        _add_budget,
+        _add_study,
+        _add_discover,
+        _add_demo,
+    ):
         add(sub)
     return p
-
 
 
 def main(argv=None) -> int:

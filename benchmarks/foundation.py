@@ -7,6 +7,7 @@
 
 Usage:  python benchmarks/foundation.py [--seed N]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -14,8 +15,8 @@ import time
 
 import numpy as np
 
-from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.simulate.campaign import PRESETS
 
 
@@ -27,9 +28,14 @@ def bias_table(tf, dt=20e-9, k=16384, t0=-2e-6):
     rows = np.repeat(np.arange(taus.size), tcs.size)
     tc = np.tile(tcs, taus.size)
     out = {}
-    for label, method, window in (("CRDS", "crds", None), ("TF-CRDS letter", "tf-crds", "letter"),
-                                  ("TF-CRDS extinction", "tf-crds", "extinction")):
-        f = fit_transients(t, sig, tc, method, tf, window, noise_v=np.full(taus.size, 1.3e-4), rows_of=rows)
+    for label, method, window in (
+        ("CRDS", "crds", None),
+        ("TF-CRDS letter", "tf-crds", "letter"),
+        ("TF-CRDS extinction", "tf-crds", "extinction"),
+    ):
+        f = fit_transients(
+            t, sig, tc, method, tf, window, noise_v=np.full(taus.size, 1.3e-4), rows_of=rows
+        )
         out[label] = (f.tau_s / taus[rows] - 1).reshape(taus.size, tcs.size)
     return taus, tcs, out
 
@@ -37,11 +43,18 @@ def bias_table(tf, dt=20e-9, k=16384, t0=-2e-6):
 def timing(tf, rng, n=600, k=8192, dt=20e-9, t0=-2e-6):
     t = t0 + dt * np.arange(k)
     taus = rng.uniform(4e-6, 32e-6, n)
-    sig = 0.002 + 0.6 * chain_from_tf(tf).ringdown_response(t, taus) + 1.3e-4 * rng.standard_normal((n, k))
+    sig = (
+        0.002
+        + 0.6 * chain_from_tf(tf).ringdown_response(t, taus)
+        + 1.3e-4 * rng.standard_normal((n, k))
+    )
     tc = np.full(n, 4e-6)
     res = {}
-    for label, method, window in (("CRDS", "crds", None), ("TF-CRDS letter", "tf-crds", "letter"),
-                                  ("TF-CRDS extinction", "tf-crds", "extinction")):
+    for label, method, window in (
+        ("CRDS", "crds", None),
+        ("TF-CRDS letter", "tf-crds", "letter"),
+        ("TF-CRDS extinction", "tf-crds", "extinction"),
+    ):
         t1 = time.perf_counter()
         f = fit_transients(t, sig, tc, method, tf, window, noise_v=np.full(n, 1.3e-4))
         res[label] = (time.perf_counter() - t1, bool(f.converged.all()))
@@ -54,12 +67,14 @@ def main(argv=None):
     args = ap.parse_args(argv)
     tf = PRESETS["letter-D4"].tf
     taus, tcs, table = bias_table(tf)
-    print(f"tau bias (tau_fit/tau - 1, %) on the exact letter-D4 chain, noiseless, 16384 x 20 ns")
+    print("tau bias (tau_fit/tau - 1, %) on the exact letter-D4 chain, noiseless, 16384 x 20 ns")
     print("| method | tau (us) | " + " | ".join(f"t_cut = {tc * 1e6:g} us" for tc in tcs) + " |")
     print("|---|---|" + "---|" * tcs.size)
     for label, b in table.items():
         for i, tau in enumerate(taus):
-            print(f"| {label} | {tau * 1e6:g} | " + " | ".join(f"{100 * v:+.5f}" for v in b[i]) + " |")
+            print(
+                f"| {label} | {tau * 1e6:g} | " + " | ".join(f"{100 * v:+.5f}" for v in b[i]) + " |"
+            )
     res = timing(tf, np.random.default_rng(args.seed))
     base = res["CRDS"][0]
     print("\ntime to fit 600 transients x 8192 samples (t_cut = 4 us), one process, 2 cores:")

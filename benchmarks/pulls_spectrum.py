@@ -12,6 +12,7 @@ also gives the fraction of fits with a shape estimate outside the physical domai
 
 Usage:  python benchmarks/pulls_spectrum.py [--draws 1000] [--seed 42]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -21,9 +22,9 @@ import numpy as np
 
 from bayes_tfcrds.core.constants import C, wavenumber_cm_to_hz
 from bayes_tfcrds.core.linalg import central_jacobian
-from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
-from bayes_tfcrds.fit.spectrum import SpectrumData, crds_spectrum
 from bayes_tfcrds.fit.line import fit_line
+from bayes_tfcrds.fit.spectrum import SpectrumData, crds_spectrum
+from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
 
 
 def _linear_gain(spectra, gd, nu0):
@@ -32,10 +33,21 @@ def _linear_gain(spectra, gd, nu0):
     f = fit_line(spectra, "qsdhcp", gd, nu0)
     model_u = np.concatenate([s.u for s in spectra])
     from bayes_tfcrds.fit.line import LineModel
-    model = LineModel("qsdhcp", ("gamma0_hz", "gamma2_hz", "nu_vc_hz"), tuple(s.kind for s in spectra),
-                      tuple(s.kind == "dispersion" for s in spectra), nu0, gd, {})
+
+    model = LineModel(
+        "qsdhcp",
+        ("gamma0_hz", "gamma2_hz", "nu_vc_hz"),
+        tuple(s.kind for s in spectra),
+        tuple(s.kind == "dispersion" for s in spectra),
+        nu0,
+        gd,
+        {},
+    )
     steps = 1e-6 * np.maximum(np.abs(f.values), 1e-3 * gd)
-    jac = central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), f.values, steps) / model_u[:, None]
+    jac = (
+        central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), f.values, steps)
+        / model_u[:, None]
+    )
     fisher = jac.T @ jac
     sd = np.sqrt(np.linalg.inv(fisher)[0, 0])
     return np.linalg.solve(fisher, jac.T)[0] / sd, sd
@@ -57,8 +69,10 @@ def main(argv=None):
     shift = C * area * g.imag / (4 * np.pi)
     u_a = 2e-5 * alpha
     u_s = 1e-3 * np.max(np.abs(shift)) * np.ones_like(shift)
-    clean = {"CRDS (absorption)": [SpectrumData("absorption", nu, alpha, u_a)],
-             "CMDS (dispersion)": [SpectrumData("dispersion", nu, shift + 3.0, u_s)]}
+    clean = {
+        "CRDS (absorption)": [SpectrumData("absorption", nu, alpha, u_a)],
+        "CMDS (dispersion)": [SpectrumData("dispersion", nu, shift + 3.0, u_s)],
+    }
     clean["joint"] = clean["CRDS (absorption)"] + clean["CMDS (dispersion)"]
     gains = {key: _linear_gain(spectra, gd, nu0) for key, spectra in clean.items()}
     rng = np.random.default_rng(args.seed)
@@ -68,27 +82,45 @@ def main(argv=None):
         ea, es = rng.standard_normal(nu.size), rng.standard_normal(nu.size)
         a = SpectrumData("absorption", nu, alpha + u_a * ea, u_a)
         d = SpectrumData("dispersion", nu, shift + 3.0 + u_s * es, u_s)
-        for key, spectra, e in (("CRDS (absorption)", [a], ea), ("CMDS (dispersion)", [d], es),
-                                ("joint", [a, d], np.concatenate([ea, es]))):
+        for key, spectra, e in (
+            ("CRDS (absorption)", [a], ea),
+            ("CMDS (dispersion)", [d], es),
+            ("joint", [a, d], np.concatenate([ea, es])),
+        ):
             f = fit_line(spectra, "qsdhcp", gd, nu0)
             gain, sd = gains[key]
-            rows[key].append(((f.line_area - area) / f.line_area_u, gain @ e, bool(f.unphysical),
-                              (f.line_area - area) / sd))
-    print(f"{args.draws} draws, seed {args.seed}, {time.perf_counter() - t0:.0f} s; "
-          f"standard error of a pull mean {1 / np.sqrt(args.draws):.3f}")
-    print("| fit | pull mean | pull sd | PASS (mean 0 +/- 0.1, sd 1 +/- 0.15) | linear-estimator pull mean "
-          "| fit - linear | Gamma2 or nu_VC < 0 | pull mean there |\n|---|---|---|---|---|---|---|---|")
+            rows[key].append(
+                (
+                    (f.line_area - area) / f.line_area_u,
+                    gain @ e,
+                    bool(f.unphysical),
+                    (f.line_area - area) / sd,
+                )
+            )
+    print(
+        f"{args.draws} draws, seed {args.seed}, {time.perf_counter() - t0:.0f} s; standard error "
+        f"of a pull mean {1 / np.sqrt(args.draws):.3f}"
+    )
+    print(
+        "| fit | pull mean | pull sd | PASS (mean 0 +/- 0.1, sd 1 +/- 0.15) | linear-estimator "
+        "pull mean | fit - linear | Gamma2 or nu_VC < 0 | pull mean there "
+        "|\n|---|---|---|---|---|---|---|---|"
+    )
     for key, r in rows.items():
         p, lin, out, dev = (np.array([x[i] for x in r]) for i in range(4))
         ok = abs(p.mean()) < 0.1 and abs(p.std() - 1) < 0.15
         there = f"{p[out].mean():+.3f}" if out.any() else "-"
-        print(f"| {key} | {p.mean():+.3f} | {p.std():.3f} | {'PASS' if ok else 'FAIL'} | {lin.mean():+.3f} "
-              f"| {np.mean(dev - lin):+.3f} | {out.mean():.1%} | {there} |")
+        print(
+            f"| {key} | {p.mean():+.3f} | {p.std():.3f} | {'PASS' if ok else 'FAIL'} | "
+            f"{lin.mean():+.3f} | {np.mean(dev - lin):+.3f} | {out.mean():.1%} | {there} |"
+        )
     tau = 1 / (C * alpha)
     s = crds_spectrum(nu, tau, 2e-5 * tau)
     v = fit_line([s], "voigt", gd, nu0)
-    print(f"Voigt fitted to noiseless qSDHCP CRDS data: A/A_true - 1 = {100 * (v.line_area / area - 1):+.3f} %, "
-          f"chi2_red = {v.chi2_red:.0f} (W-shaped residual)")
+    print(
+        "Voigt fitted to noiseless qSDHCP CRDS data: A/A_true - 1 = "
+        f"{100 * (v.line_area / area - 1):+.3f} %, chi2_red = {v.chi2_red:.0f} (W-shaped residual)"
+    )
 
 
 if __name__ == "__main__":

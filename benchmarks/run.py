@@ -10,6 +10,7 @@ and memory grow with points, samples and H draws.
 
 Usage:  python benchmarks/run.py [--seed N] [--quick]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,12 +27,12 @@ from scipy import fft as sfft
 from scipy import optimize
 
 from bayes_tfcrds.fit.h_calibration import calibrate
-from bayes_tfcrds.fit.ringdown import fit_ringdowns
-from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
-from bayes_tfcrds.fit.spectrum import crds_spectrum
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import doppler_of
+from bayes_tfcrds.fit.ringdown import fit_ringdowns
+from bayes_tfcrds.fit.spectrum import crds_spectrum
 from bayes_tfcrds.physics.transfer_function import transfer_function
+from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 
 T_CUTS = (2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6)
 RESULTS = []
@@ -64,10 +65,12 @@ def naive_fit(t, y, t_cut, tf, tau0):
     def model(p):
         amp, off, tau = p
         x = np.where(s < 0, 1.0, np.exp(-np.clip(s, 0, None) / tau))
-        g = np.fft.irfft(np.fft.rfft(x) * h, n)[n_hist:n_hist + t.size]
+        g = np.fft.irfft(np.fft.rfft(x) * h, n)[n_hist : n_hist + t.size]
         return off + amp * g
 
-    sol = optimize.least_squares(lambda p: (model(p) - y)[sel], [y[sel][0], 0.0, tau0], x_scale="jac")
+    sol = optimize.least_squares(
+        lambda p: (model(p) - y)[sel], [y[sel][0], 0.0, tau0], x_scale="jac"
+    )
     return sol.x[2]
 
 
@@ -78,17 +81,18 @@ def peak_memory_child(seed, points, samples):
     second, traced by tracemalloc (numpy reports its buffers to it), is what grows with the size
     of the problem.
     """
-    code = (f"import numpy as np, resource, sys, tracemalloc; sys.path.insert(0, 'benchmarks');"
-            f"from run import r1_bundle, T_CUTS; from bayes_tfcrds.analysis import calibrate;"
-            f"from bayes_tfcrds.ringdown import fit_ringdowns;"
-            f"b, _ = r1_bundle({seed}, {points}, {samples}, 2); c = b.configs['D2'];"
-            f"cal = calibrate(c, window='extinction');"
-            f"tracemalloc.start();"
-            f"fit_ringdowns(c.ringdowns, T_CUTS, 'tf-crds', cal.params, 'extinction');"
-            f"print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, tracemalloc.get_traced_memory()[1])")
+    code = (
+        "import numpy as np, resource, sys, tracemalloc; sys.path.insert(0, 'benchmarks');from "
+        "run import r1_bundle, T_CUTS; from bayes_tfcrds.fit.h_calibration import calibrate;from "
+        f"bayes_tfcrds.fit.ringdown import fit_ringdowns;b, _ = r1_bundle({seed}, {points}, "
+        f"{samples}, 2); c = b.configs['D2'];cal = calibrate(c, "
+        "window='extinction');tracemalloc.start();fit_ringdowns(c.ringdowns, T_CUTS, 'tf-crds', "
+        "cal.params, 'extinction');print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, "
+        "tracemalloc.get_traced_memory()[1])"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     rss_kib, fit_bytes = out.stdout.strip().splitlines()[-1].split()
-    return int(rss_kib) / 1024.0, int(fit_bytes) / 2**20      # ru_maxrss is KiB on Linux
+    return int(rss_kib) / 1024.0, int(fit_bytes) / 2**20  # ru_maxrss is KiB on Linux
 
 
 def main(argv=None):
@@ -99,7 +103,10 @@ def main(argv=None):
     b, truth = r1_bundle(args.seed)
     cfg = b.configs["D2"]
     rd = cfg.ringdowns
-    print(f"R1: {rd.n_points} points x {rd.n_samples} samples x {len(T_CUTS)} t_cut = {rd.n_points * len(T_CUTS)} fits")
+    print(
+        f"R1: {rd.n_points} points x {rd.n_samples} samples x {len(T_CUTS)} t_cut = "
+        f"{rd.n_points * len(T_CUTS)} fits"
+    )
     cal = calibrate(cfg, window="extinction")
     tf = cal.params
 
@@ -118,31 +125,52 @@ def main(argv=None):
     naive = [naive_fit(rd.time_s, rd.signal_v[i], 4e-6, tf, crds.tau_s[i, 2]) for i in sub]
     t_naive = (time.perf_counter() - t0) / sub.size * rd.n_points * len(T_CUTS)
     agree = np.max(np.abs(np.array(naive) / tfc.tau_s[sub, 2] - 1))
-    print(f"  straightforward least_squares: {t_naive:.0f} s for R1 (from {sub.size} fits); max |tau/tau - 1| "
-          f"against ours {agree:.1e}")
-    report("speed-up over straightforward least_squares", t_naive / t_tf, ">= 20", t_naive / t_tf >= 20, "x")
+    print(
+        f"  straightforward least_squares: {t_naive:.0f} s for R1 (from {sub.size} fits); max "
+        f"|tau/tau - 1| against ours {agree:.1e}"
+    )
+    report(
+        "speed-up over straightforward least_squares",
+        t_naive / t_tf,
+        ">= 20",
+        t_naive / t_tf >= 20,
+        "x",
+    )
 
     # propagation of 1000 H draws into A, against full refits
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
+
     opts = BudgetOptions(posterior="laplace", n_h_draws=1000)
     t0 = time.perf_counter()
     res = run_budget(b, cfg, opts, np.random.default_rng(args.seed))
     t_prop = time.perf_counter() - t0
-    report("1000 H draws propagated into A for R1 (whole Laplace budget)", t_prop, "<= 60 s", t_prop <= 60, " s")
+    report(
+        "1000 H draws propagated into A for R1 (whole Laplace budget)",
+        t_prop,
+        "<= 60 s",
+        t_prop <= 60,
+        " s",
+    )
     gd = doppler_of(b.sample)
     sens = res.summary["sensitivities_hz_per_m"]
     from bayes_tfcrds.fit.h_calibration import BEAT_FREE
+
     h_star = replace(tf)
     from bayes_tfcrds.physics.transfer_function import TFParams
+
     hs = res.summary["transfer_function"]
-    h_star = TFParams(**{k: hs[k] for k in ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r", "variant")})
+    h_star = TFParams(
+        **{k: hs[k] for k in ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r", "variant")}
+    )
     draws = res.samples["h_draws"]
     pick = np.random.default_rng(args.seed).choice(draws.shape[0], 6, replace=False)
 
     def area(p):
         f = fit_ringdowns(rd, [4e-6], "tf-crds", p, "extinction")
-        return fit_line([crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])], "qsdhcp", gd,
-                        b.sample.nu0_hz).line_area
+        return fit_line(
+            [crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])], "qsdhcp", gd, b.sample.nu0_hz
+        ).line_area
+
     a0 = area(h_star)
     hess = np.asarray(res.summary["hessian_hz_per_m"]["matrix"])
     centre = h_star.as_vector(BEAT_FREE)
@@ -156,15 +184,25 @@ def main(argv=None):
         worst = max(worst, abs(full - lin - 0.5 * d @ hess @ d))
     u_a = res.budget_a.combined_u
     print(f"  first order alone: max |dA_lin - dA_full| / u(A) = {worst_lin / u_a:.4f}")
-    report("propagation (tangent + curvature) vs full refits (max |dA_prop - dA_full| / u(A), 6 draws)",
-           worst / u_a, "<= 0.02", worst / u_a <= 0.02)
+    report(
+        "propagation (tangent + curvature) vs full refits (max |dA_prop - dA_full| / u(A), 6 "
+        "draws)",
+        worst / u_a,
+        "<= 0.02",
+        worst / u_a <= 0.02,
+    )
 
     mem, fit_mem = peak_memory_child(args.seed, 101, 16384)
     print(f"  memory allocated by the R1 TF-CRDS fit itself (tracemalloc peak): {fit_mem:.0f} MiB")
-    report("peak memory of the R1 TF-CRDS fit (child process)", mem, "< 2048 MiB", mem < 2048, " MiB")
+    report(
+        "peak memory of the R1 TF-CRDS fit (child process)", mem, "< 2048 MiB", mem < 2048, " MiB"
+    )
 
     if not args.quick:
-        print("\nscaling (TF-CRDS fits of six t_cut, best of 3; time s / fit's own peak allocation MiB):")
+        print(
+            "\nscaling (TF-CRDS fits of six t_cut, best of 3; time s / fit's own peak allocation "
+            "MiB):"
+        )
         for label, sizes in (("points", (25, 51, 101)), ("samples", (4096, 8192, 16384))):
             ts, ms = [], []
             for v in sizes:
@@ -180,36 +218,82 @@ def main(argv=None):
             x = np.array(sizes, float)
             t_slope = np.polyfit(np.log(x), np.log(ts), 1)[0]
             m_slope = np.polyfit(np.log(x), np.log(ms), 1)[0]
-            print(f"  {label:8s} {sizes}: time {np.round(ts, 3)} s (~{label}^{t_slope:.2f}), "
-                  f"memory {np.round(ms, 1)} MiB (~{label}^{m_slope:.2f})")
+            print(
+                f"  {label:8s} {sizes}: time {np.round(ts, 3)} s (~{label}^{t_slope:.2f}), memory "
+                f"{np.round(ms, 1)} MiB (~{label}^{m_slope:.2f})"
+            )
         import tracemalloc
+
         ts, ms = [], []
         for n in (250, 500, 1000):
             t0 = time.perf_counter()
             run_budget(b, cfg, replace(opts, n_h_draws=n), np.random.default_rng(1))
             ts.append(time.perf_counter() - t0)
-            tracemalloc.start()             # a second, traced run: tracing slows allocation
+            tracemalloc.start()  # a second, traced run: tracing slows allocation
             run_budget(b, cfg, replace(opts, n_h_draws=n), np.random.default_rng(1))
             ms.append(tracemalloc.get_traced_memory()[1] / 2**20)
             tracemalloc.stop()
-        print(f"  draws    (250, 500, 1000): whole Laplace budget {np.round(ts, 1)} s, peak allocation "
-              f"{np.round(ms)} MiB (the draws are O(n) and cheap beside the fits and refits)")
+        print(
+            f"  draws    (250, 500, 1000): whole Laplace budget {np.round(ts, 1)} s, peak "
+            f"allocation {np.round(ms)} MiB (the draws are O(n) and cheap beside the fits and "
+            "refits)"
+        )
         with tempfile.TemporaryDirectory() as tmp:
             exe = [sys.executable, "-m", "bayes_tfcrds.cli"]
             bundle = os.path.join(tmp, "d2.h5")
-            subprocess.run(exe + ["simulate", "--preset", "letter-D2", "--seed", str(args.seed), "-o", bundle],
-                           check=True, capture_output=True)
+            subprocess.run(
+                exe + ["simulate", "--preset", "letter-D2", "--seed", str(args.seed), "-o", bundle],
+                check=True,
+                capture_output=True,
+            )
             t0 = time.perf_counter()
-            subprocess.run(exe + ["budget", bundle, "--config", "D2", "--quiet", "--seed", str(args.seed),
-                                  "-o", os.path.join(tmp, "budget")], check=True, capture_output=True)
+            subprocess.run(
+                exe
+                + [
+                    "budget",
+                    bundle,
+                    "--config",
+                    "D2",
+                    "--quiet",
+                    "--seed",
+                    str(args.seed),
+                    "-o",
+                    os.path.join(tmp, "budget"),
+                ],
+                check=True,
+                capture_output=True,
+            )
             t_b = time.perf_counter() - t0
-            report("bayes-tfcrds budget, one letter configuration (MCMC, default steps)", t_b / 60, "<= 5 min",
-                   t_b <= 300, " min")
+            report(
+                "bayes-tfcrds budget, one letter configuration (MCMC, default steps)",
+                t_b / 60,
+                "<= 5 min",
+                t_b <= 300,
+                " min",
+            )
             t0 = time.perf_counter()
-            subprocess.run(exe + ["study", "studies/budget_D1_D4.toml", "--quiet", "--workers", "2",
-                                  "-o", os.path.join(tmp, "study")], check=True, capture_output=True)
+            subprocess.run(
+                exe
+                + [
+                    "study",
+                    "studies/budget_D1_D4.toml",
+                    "--quiet",
+                    "--workers",
+                    "2",
+                    "-o",
+                    os.path.join(tmp, "study"),
+                ],
+                check=True,
+                capture_output=True,
+            )
             t_s = time.perf_counter() - t0
-            report("four-configuration budget study, 2 workers", t_s / 60, "<= 20 min", t_s <= 1200, " min")
+            report(
+                "four-configuration budget study, 2 workers",
+                t_s / 60,
+                "<= 20 min",
+                t_s <= 1200,
+                " min",
+            )
     n_fail = sum(not r["pass"] for r in RESULTS)
     print(f"\n{len(RESULTS) - n_fail} passed, {n_fail} failed")
     with open("benchmarks/last_run.json", "w") as fh:

@@ -12,6 +12,7 @@ checked against the contract rather than against its own writer. Contents:
 The ring-downs are exponentials with Gaussian noise (seeded), well inside any digitizer
 range, so nothing is clipped. ``GOOD`` holds the numbers used, for tests that need them.
 """
+
 from __future__ import annotations
 
 import h5py
@@ -21,10 +22,20 @@ import pytest
 C = 299_792_458.0
 
 GOOD = dict(
-    nu0_hz=6.383e3 * C * 100.0,        # ~6383 cm^-1, CO (3-0) band
+    nu0_hz=6.383e3 * C * 100.0,  # ~6383 cm^-1, CO (3-0) band
     fsr_hz=250.0e6,
-    m=5, k=400, dt_s=1.0e-7, t0_s=-2.0e-6, tau_s=10.0e-6, amp_v=1.0, noise_v=2.0e-3,
-    n_tf=12, f_c_hz=2.0e6, i1_v=0.5, i2_v=0.4, n_avg=100,
+    m=5,
+    k=400,
+    dt_s=1.0e-7,
+    t0_s=-2.0e-6,
+    tau_s=10.0e-6,
+    amp_v=1.0,
+    noise_v=2.0e-3,
+    n_tf=12,
+    f_c_hz=2.0e6,
+    i1_v=0.5,
+    i2_v=0.4,
+    n_avg=100,
 )
 
 
@@ -86,7 +97,7 @@ def write_good_bundle(path, seed: int = 1) -> None:
         rd = f.create_group("configs/D2/ringdowns")
         rd.attrs["dt_s"] = g["dt_s"]
         rd.attrs["t0_s"] = 0.0
-        rd["nu_hz"] = nu[::-1]          # non-monotonic order is allowed
+        rd["nu_hz"] = nu[::-1]  # non-monotonic order is allowed
         rd["signal_v"] = _transients(rng, nu[::-1], dict(g, t0_s=0.0))
 
 

@@ -24,10 +24,22 @@ def test_every_public_name_resolves_to_its_defining_module():
         bt.no_such_name  # noqa: B018
 
 
+def test_no_public_name_is_shadowed_by_a_subpackage():
+    """Importing a subpackage sets it as an attribute of the package: a public name equal to a
+    subpackage's would then resolve to the module instead of the function."""
+    subpackages = {p.parent.name for p in Path(bt.__file__).parent.glob("*/__init__.py")}
+    assert not subpackages & set(bt.__all__)
+
+
 def test_import_is_lazy():
     """Importing the package (as the CLI does at start) loads no numerical stack."""
-    code = "import sys, bayes_tfcrds; print(sorted(m for m in ('numpy', 'scipy', 'h5py', 'emcee') if m in sys.modules))"
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    code = (
+        "import sys, bayes_tfcrds; print(sorted(m for m in ('numpy', 'scipy', 'h5py', 'emcee') if "
+        "m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=True
+    ).stdout
     assert out.strip() == "[]"
 
 

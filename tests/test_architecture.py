@@ -11,13 +11,29 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[1] / "bayes_tfcrds"
 #: lowest first; a module may import from its own layer and the layers before it
-LAYERS = ("_version", "core", "output", "bundle", "physics", "simulate", "fit", "inference", "uncertainty",
-          "discover", "studies", "cli", "__init__")
+LAYERS = (
+    "_version",
+    "core",
+    "output",
+    "bundle",
+    "physics",
+    "simulate",
+    "fit",
+    "inference",
+    "uncertainty",
+    "discovery",
+    "studies",
+    "cli",
+    "__init__",
+)
 
 
 def _contract(layer: str) -> set:
     """The layers a subpackage may import, read from the "May import:" line of its docstring."""
-    doc = ast.get_docstring(ast.parse((PACKAGE / layer / "__init__.py").read_text(encoding="utf-8"))) or ""
+    doc = (
+        ast.get_docstring(ast.parse((PACKAGE / layer / "__init__.py").read_text(encoding="utf-8")))
+        or ""
+    )
     said = doc.split("May import:", 1)[1] if "May import:" in doc else ""
     if "every layer below" in said:
         return set(LAYERS[: LAYERS.index(layer)])
@@ -43,7 +59,9 @@ def _imports(path: Path):
     tree = ast.parse(path.read_text(encoding="utf-8"))
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            assert node.level == 0, f"{path}:{node.lineno}: relative import (the package imports absolutely)"
+            assert node.level == 0, (
+                f"{path}:{node.lineno}: relative import (the package imports absolutely)"
+            )
             if node.module and node.module.split(".")[0] == "bayes_tfcrds":
                 yield node.lineno, node.module, [a.name for a in node.names]
         elif isinstance(node, ast.Import):
@@ -67,7 +85,9 @@ def test_every_subpackage_is_a_layer_and_says_what_it_may_import():
         name = init.parent.name
         assert name in LAYERS, f"subpackage {name} has no place in LAYERS"
         doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))) or ""
-        assert "May import" in doc, f"{init}: the docstring must state what the subpackage may import"
+        assert "May import" in doc, (
+            f"{init}: the docstring must state what the subpackage may import"
+        )
     for path in PACKAGE.glob("*.py"):
         assert path.stem in LAYERS, f"top-level module {path.name} has no place in LAYERS"
 
@@ -78,15 +98,21 @@ def test_imports_go_one_way_down(module):
     mine = LAYERS.index(_layer(module))
     for line, target, _ in imports:
         if target == "bayes_tfcrds":
-            assert module == "bayes_tfcrds", f"{path}:{line}: import the defining module, not the package"
+            assert module == "bayes_tfcrds", (
+                f"{path}:{line}: import the defining module, not the package"
+            )
             continue
         theirs = LAYERS.index(_layer(target))
-        assert theirs <= mine, f"{path}:{line}: {module} ({LAYERS[mine]}) imports {target} ({LAYERS[theirs]}), " \
-                               "a layer above it"
+        assert theirs <= mine, (
+            f"{path}:{line}: {module} ({LAYERS[mine]}) imports {target} ({LAYERS[theirs]}), a "
+            "layer above it"
+        )
         layer = _layer(module)
         if theirs < mine and (PACKAGE / layer / "__init__.py").exists():
-            assert _layer(target) in _contract(layer), \
-                f"{path}:{line}: {module} imports {target}, which {layer}/__init__.py does not allow"
+            assert _layer(target) in _contract(layer), (
+                f"{path}:{line}: {module} imports {target}, which {layer}/__init__.py does not "
+                "allow"
+            )
 
 
 @pytest.mark.parametrize("module", sorted(GRAPH))
@@ -101,7 +127,10 @@ def test_no_private_name_crosses_a_subpackage(module):
 
 def _cycles(graph: dict) -> list:
     """Strongly connected components with more than one module (Tarjan)."""
-    edges = {m: sorted({t for _, t, _ in imps if t in graph and t != m}) for m, (_, imps) in graph.items()}
+    edges = {
+        m: sorted({t for _, t, _ in imps if t in graph and t != m})
+        for m, (_, imps) in graph.items()
+    }
     index, low, stack, on, out = {}, {}, [], set(), []
 
     def visit(v):
@@ -137,8 +166,14 @@ def test_no_import_cycle():
 
 def test_the_checks_can_fail():
     """The checks see a cycle and an upward import when there is one."""
-    fake = {"bayes_tfcrds.core.a": (Path("a"), [(1, "bayes_tfcrds.fit.b", ["x"])]),
-            "bayes_tfcrds.fit.b": (Path("b"), [(1, "bayes_tfcrds.core.a", ["_y"])])}
+    fake = {
+        "bayes_tfcrds.core.a": (Path("a"), [(1, "bayes_tfcrds.fit.b", ["x"])]),
+        "bayes_tfcrds.fit.b": (Path("b"), [(1, "bayes_tfcrds.core.a", ["_y"])]),
+    }
     assert _cycles(fake) == [["bayes_tfcrds.core.a", "bayes_tfcrds.fit.b"]]
     assert LAYERS.index(_layer("bayes_tfcrds.fit.b")) > LAYERS.index(_layer("bayes_tfcrds.core.a"))
-    assert "simulate" not in _contract("fit") and "physics" in _contract("fit") and _contract("core") == {"_version"}
+    assert (
+        "simulate" not in _contract("fit")
+        and "physics" in _contract("fit")
+        and _contract("core") == {"_version"}
+    )

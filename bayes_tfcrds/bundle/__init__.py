@@ -1,5 +1,6 @@
-"""The measurement bundle (FORMAT.md, one HDF5 file per campaign): records, reader and
-validator, writer, and the human-readable summary.
+"""The measurement bundle (FORMAT.md, one HDF5 file per campaign).
+
+Records, reader and validator, writer, and the human-readable summary.
 
 May import: core, output.
 """

@@ -1,4 +1,4 @@
-"""The TF-CRDS measurement bundle (one HDF5 file per campaign): load, check, summarise, save.
+"""Read and check a TF-CRDS measurement bundle (one HDF5 file per campaign).
 
 The contract is /work/shared/FORMAT.md (format ``tfcrds-bundle``, version 1). A file that
 follows it loads; a file that breaks it is refused with every problem listed, each naming
@@ -16,6 +16,7 @@ plain ``str``. Unknown extra items and attributes are allowed and only warned ab
 
 Everything is SI, as in the file: Hz, s, V, Pa, K.
 """
+
 from __future__ import annotations
 
 import difflib
@@ -26,8 +27,21 @@ from typing import Any
 import h5py
 import numpy as np
 
-from bayes_tfcrds.bundle.records import Bundle, BundleError, CLIP_RUN, Cavity, CmdsData, Config, FORMAT_NAME, FORMAT_VERSION, RingdownData, Sample, TransferFunctionData, Violation, _HDF5_SIGNATURE
-
+from bayes_tfcrds.bundle.records import (
+    _HDF5_SIGNATURE,
+    CLIP_RUN,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    Bundle,
+    BundleError,
+    Cavity,
+    CmdsData,
+    Config,
+    RingdownData,
+    Sample,
+    TransferFunctionData,
+    Violation,
+)
 
 # --------------------------------------------------------------------------- reading
 
@@ -38,8 +52,17 @@ _FRACTION = ("in (0, 1]", lambda a: (a > 0) & (a <= 1))
 
 _ROOT_ITEMS = ("sample", "cavity", "configs", "truth")
 _ROOT_ATTRS = ("format", "format_version", "description")
-_SAMPLE_ATTRS = ("molecule", "line", "nu0_hz", "pressure_pa", "pressure_u_pa", "temperature_k",
-                 "temperature_u_k", "mole_fraction", "mass_u")
+_SAMPLE_ATTRS = (
+    "molecule",
+    "line",
+    "nu0_hz",
+    "pressure_pa",
+    "pressure_u_pa",
+    "temperature_k",
+    "temperature_u_k",
+    "mole_fraction",
+    "mass_u",
+)
 _CONFIG_ITEMS = ("transfer_function", "ringdowns", "cmds")
 _TF_ITEMS = ("f_hz", "b12_v", "b12_u_v", "i1_v", "i2_v")
 _RD_ITEMS = ("nu_hz", "signal_v", "n_avg", "noise_v")
@@ -122,8 +145,9 @@ class _Reader:
                     self.error(path, f"required {kind} is missing")
                 return None
             if isinstance(link, h5py.ExternalLink):
-                self.error(path, "is an external link to another file; a bundle must be "
-                                 "self-contained")
+                self.error(
+                    path, "is an external link to another file; a bundle must be self-contained"
+                )
                 return None
             obj = group.get(name)
         except Exception as exc:  # corrupt file: h5py raises many types
@@ -215,7 +239,9 @@ class _Reader:
                 if number != int(number):
                     self.error(path, f"expected an integer, found {number!r}")
                     return None
-                self.warn(path, f"stored as a float ({number!r}); read as the integer {int(number)}")
+                self.warn(
+                    path, f"stored as a float ({number!r}); read as the integer {int(number)}"
+                )
             number = int(number)
         else:
             number = float(number)
@@ -226,8 +252,17 @@ class _Reader:
 
     # -- datasets
 
-    def array(self, group, gpath: str, name: str, ndims=(1,), required: bool = True,
-              rule=None, integer: bool = False, precise: bool = False):
+    def array(
+        self,
+        group,
+        gpath: str,
+        name: str,
+        ndims=(1,),
+        required: bool = True,
+        rule=None,
+        integer: bool = False,
+        precise: bool = False,
+    ):
         """Dataset ``name`` as a read-only float64 (int64 if ``integer``) array, or None.
 
         Checks: numeric datatype, number of dimensions in ``ndims``, non-empty, finite,
@@ -257,13 +292,19 @@ class _Reader:
             return None
         if dtype.kind == "f" and dtype.itemsize < 8:
             if precise:
-                self.error(path, f"is stored as {dtype}: too few digits for an absolute "
-                                 "optical frequency; must be float64")
+                self.error(
+                    path,
+                    f"is stored as {dtype}: too few digits for an absolute optical frequency; "
+                    "must be float64",
+                )
                 return None
             self.warn(path, f"stored as {dtype}, the contract says float64; read as float64")
         if ds.is_virtual or ds.external:
-            self.error(path, "keeps its data in another file (virtual/external storage); "
-                             "a bundle must be self-contained")
+            self.error(
+                path,
+                "keeps its data in another file (virtual/external storage); a bundle must be "
+                "self-contained",
+            )
             return None
         try:
             raw = np.asarray(ds[()])
@@ -274,9 +315,11 @@ class _Reader:
             bad = ~np.isfinite(raw)
             if bad.any():
                 first = int(np.argmax(bad.reshape(-1)))
-                self.error(path, f"contains {int(bad.sum())} non-finite value(s) (NaN or inf); "
-                                 f"first at index {_index(first, raw.shape)}: "
-                                 f"{_num(raw.reshape(-1)[first])}")
+                self.error(
+                    path,
+                    f"contains {int(bad.sum())} non-finite value(s) (NaN or inf); first at index "
+                    f"{_index(first, raw.shape)}: {_num(raw.reshape(-1)[first])}",
+                )
                 return None
         if integer:
             if dtype.kind == "f":
@@ -291,9 +334,12 @@ class _Reader:
             bad = ~rule[1](values)
             if np.any(bad):
                 first = int(np.argmax(np.reshape(bad, -1)))
-                self.error(path, f"must be {rule[0]}: {int(np.sum(bad))} of {values.size} "
-                                 f"value(s) are not, first at index {_index(first, values.shape)}: "
-                                 f"{_num(values.reshape(-1)[first])}")
+                self.error(
+                    path,
+                    f"must be {rule[0]}: {int(np.sum(bad))} of {values.size} value(s) are not, "
+                    f"first at index {_index(first, values.shape)}: "
+                    f"{_num(values.reshape(-1)[first])}",
+                )
                 return None
         values.setflags(write=False)
         return values
@@ -301,8 +347,10 @@ class _Reader:
     def same_length(self, gpath: str, name: str, values, n: int | None, ref: str) -> None:
         """Check a 1-D array has length ``n``, which ``ref`` (a phrase) explains."""
         if values is not None and n is not None and values.shape != (n,):
-            self.error(_join(gpath, name), f"has {values.shape[0]} value(s) but {ref}; "
-                                           f"expected shape ({n},)")
+            self.error(
+                _join(gpath, name),
+                f"has {values.shape[0]} value(s) but {ref}; expected shape ({n},)",
+            )
 
 
 def _hint(name: str, known: tuple[str, ...]) -> str:
@@ -316,8 +364,11 @@ def _read_bundle(f: h5py.File, r: _Reader) -> Bundle | None:
         r.error("/@format", f"is {_short(fmt)}, expected {FORMAT_NAME!r}")
     version = r.attr(f, "/", "format_version", "int")
     if version is not None and version != FORMAT_VERSION:
-        r.error("/@format_version", f"format version {version} found; this reader supports "
-                                    f"version {FORMAT_VERSION} only (file not checked further)")
+        r.error(
+            "/@format_version",
+            f"format version {version} found; this reader supports version {FORMAT_VERSION} only "
+            "(file not checked further)",
+        )
         return None
     description = r.attr(f, "/", "description", "str", required=False)
     r.extras(f, "/", _ROOT_ITEMS, _ROOT_ATTRS)
@@ -387,15 +438,15 @@ def _read_configs(f, r: _Reader) -> dict[str, Config]:
             continue
         n_groups += 1
         if external:  # never followed: it would open another file
-            r.error(path, "is an external link to another file; a bundle must be "
-                          "self-contained")
+            r.error(path, "is an external link to another file; a bundle must be self-contained")
             continue
         cfg = _read_config(obj, path, name, r)
         if cfg is not None:
             configs[name] = cfg
     if n_groups == 0:
-        r.error("/configs", "holds no configuration; at least one group /configs/<name> "
-                            "is required")
+        r.error(
+            "/configs", "holds no configuration; at least one group /configs/<name> is required"
+        )
     return configs
 
 
@@ -430,27 +481,36 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     r.same_length(p, "nu_hz", nu, m, rows)
     r.same_length(p, "n_avg", n_avg, m, rows)
     if noise is not None and noise.shape not in ((m,), (m, k)):
-        r.error(_join(p, "noise_v"), f"has shape {noise.shape}; expected ({m},) or ({m}, {k}) "
-                                     f"to match signal_v of shape ({m}, {k})")
+        r.error(
+            _join(p, "noise_v"),
+            f"has shape {noise.shape}; expected ({m},) or ({m}, {k}) to match signal_v of shape "
+            f"({m}, {k})",
+        )
     if dt is not None and t0 is not None and t0 + dt * (k - 1) < 0:
-        r.error(f"{p}@t0_s", f"the record has no sample at t >= 0 (after laser extinction): "
-                             f"its last sample is at t = {t0 + dt * (k - 1):.6g} s "
-                             f"(t0_s = {t0!r}, dt_s = {dt!r}, k = {k})")
+        r.error(
+            f"{p}@t0_s",
+            "the record has no sample at t >= 0 (after laser extinction): its last sample is at t "
+            f"= {t0 + dt * (k - 1):.6g} s (t0_s = {t0!r}, dt_s = {dt!r}, k = {k})",
+        )
     if len(r.errors) > n0:
         return None
     data = RingdownData(nu, signal, dt, t0, n_avg, noise)
     sat = data.saturation
     for i in np.flatnonzero(data.saturated):
-        r.warn(_join(p, "signal_v"),
-               f"transient {i} (nu_hz = {data.nu_hz[i]:.12g}) looks saturated: its top is flat "
-               f"(scatter {sat.scatter_v[i]:.2g} V where the record's noise is "
-               f"{sat.noise_v[i]:.2g} V) until t = {sat.end_s[i]:.3g} s after extinction, below "
-               "the digitizer rails (detector or amplifier saturation?); not fitted")
+        r.warn(
+            _join(p, "signal_v"),
+            f"transient {i} (nu_hz = {data.nu_hz[i]:.12g}) looks saturated: its top is flat "
+            f"(scatter {sat.scatter_v[i]:.2g} V where the record's noise is {sat.noise_v[i]:.2g} "
+            f"V) until t = {sat.end_s[i]:.3g} s after extinction, below the digitizer rails "
+            "(detector or amplifier saturation?); not fitted",
+        )
     for i in np.flatnonzero(data.clipped & ~data.saturated):
-        r.warn(_join(p, "signal_v"),
-               f"transient {i} (nu_hz = {data.nu_hz[i]:.12g}) looks clipped: a flat run of "
-               f">= {CLIP_RUN} identical samples at its maximum or minimum reaching t > 0 "
-               "(digitizer rail?)")
+        r.warn(
+            _join(p, "signal_v"),
+            f"transient {i} (nu_hz = {data.nu_hz[i]:.12g}) looks clipped: a flat run of >= "
+            f"{CLIP_RUN} identical samples at its maximum or minimum reaching t > 0 (digitizer "
+            "rail?)",
+        )
     return data
 
 
@@ -462,7 +522,7 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
     r.extras(g, p, _TF_ITEMS)
     f_hz = r.array(g, p, "f_hz", rule=_POSITIVE)
     b12 = r.array(g, p, "b12_v", rule=_NONNEG)
-    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_POSITIVE)   # a weight: 0 is infinite
+    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_POSITIVE)  # a weight: 0 is infinite
     i1 = r.array(g, p, "i1_v", ndims=(0, 1), rule=_POSITIVE)
     i2 = r.array(g, p, "i2_v", ndims=(0, 1), rule=_POSITIVE)
     n = None
@@ -471,14 +531,19 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
         step = np.diff(f_hz)
         if np.any(step <= 0):
             i = int(np.argmax(step <= 0))
-            r.error(_join(p, "f_hz"), f"must be strictly increasing: f_hz[{i + 1}] = "
-                                      f"{_num(f_hz[i + 1])} <= f_hz[{i}] = {_num(f_hz[i])}")
+            r.error(
+                _join(p, "f_hz"),
+                f"must be strictly increasing: f_hz[{i + 1}] = {_num(f_hz[i + 1])} <= f_hz[{i}] = "
+                f"{_num(f_hz[i])}",
+            )
     r.same_length(p, "b12_v", b12, n, f"f_hz has {n}")
     r.same_length(p, "b12_u_v", b12_u, n, f"f_hz has {n}")
     for name, level in (("i1_v", i1), ("i2_v", i2)):
         if level is not None and n is not None and level.shape not in ((), (n,)):
-            r.error(_join(p, name), f"must be a scalar () or have shape ({n},) like f_hz; "
-                                    f"found shape {level.shape}")
+            r.error(
+                _join(p, name),
+                f"must be a scalar () or have shape ({n},) like f_hz; found shape {level.shape}",
+            )
     if len(r.errors) > n0:
         return None
     return TransferFunctionData(f_hz, b12, i1, i2, b12_u)
@@ -496,8 +561,12 @@ def _read_cmds(parent, cp: str, r: _Reader) -> CmdsData | None:
     width = r.array(g, p, "width_hz", required=False, rule=_POSITIVE)
     width_u = r.array(g, p, "width_u_hz", required=False, rule=_POSITIVE)  # a weight, like shift_u
     n = None if nu is None else nu.shape[0]
-    for name, values in (("shift_hz", shift), ("shift_u_hz", shift_u), ("width_hz", width),
-                         ("width_u_hz", width_u)):
+    for name, values in (
+        ("shift_hz", shift),
+        ("shift_u_hz", shift_u),
+        ("width_hz", width),
+        ("width_u_hz", width_u),
+    ):
         r.same_length(p, name, values, n, f"nu_hz has {n} (all cmds arrays share length p)")
     if width_u is not None and width is None and len(r.errors) == n0:
         r.warn(_join(p, "width_u_hz"), "ignored: width_hz is missing")
@@ -533,8 +602,10 @@ def _open_problem(path: str) -> str | None:
 
 
 def validate_file(path) -> tuple[Bundle | None, list[Violation], list[Violation]]:
-    """Check a file against FORMAT.md: (bundle or None, errors, warnings). Never raises for
-    bad content; the bundle is returned only when there are no errors. Units: SI."""
+    """Check a file against FORMAT.md: (bundle or None, errors, warnings).
+
+    Never raises for bad content; the bundle is returned only when there are no errors. Units: SI.
+    """
     name = os.fspath(path)
     r = _Reader()
     problem = _open_problem(name)
@@ -565,8 +636,11 @@ def validate_file(path) -> tuple[Bundle | None, list[Violation], list[Violation]
 
 
 def load_bundle(path) -> Bundle:
-    """Load a bundle (SI units, arrays read-only). Raises BundleError listing every
-    violation; warnings (e.g. clipped transients) are available from validate_file."""
+    """Load a bundle (SI units, arrays read-only).
+
+    Raises BundleError listing every violation; warnings (e.g. clipped transients) are available
+    from validate_file.
+    """
     bundle, errors, _ = validate_file(path)
     if errors:
         raise BundleError(path, errors)
@@ -606,8 +680,11 @@ def _read_truth(g: h5py.Group, where: str, file: str) -> dict:
 
 
 def load_truth(path) -> dict | None:
-    """The simulator's /truth as a nested dict (None if absent). For tests and studies
-    only: analyses must never read it. Raises BundleError if the file cannot be opened."""
+    """The simulator's /truth as a nested dict (None if absent).
+
+    For tests and studies only: analyses must never read it. Raises BundleError if the file cannot
+    be opened.
+    """
     name = os.fspath(path)
     problem = _open_problem(name)
     if problem:

@@ -3,6 +3,7 @@
 Everything is SI, as in the file: Hz, s, V, Pa, K. A record never changes after it is made
 (arrays are read-only), so a bundle can be shared between fits and processes.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -12,8 +13,6 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-
-
 
 FORMAT_NAME = "tfcrds-bundle"
 FORMAT_VERSION = 1
@@ -39,14 +38,14 @@ class _Record:
     def __eq__(self, other):
         if type(other) is not type(self):
             return NotImplemented
-        return all(_same(getattr(self, f.name), getattr(other, f.name))
-                   for f in dataclasses.fields(self))
+        return all(
+            _same(getattr(self, f.name), getattr(other, f.name)) for f in dataclasses.fields(self)
+        )
 
 
 def _same(a, b) -> bool:
     if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-        return (isinstance(a, np.ndarray) and isinstance(b, np.ndarray)
-                and np.array_equal(a, b))
+        return isinstance(a, np.ndarray) and isinstance(b, np.ndarray) and np.array_equal(a, b)
     return a == b
 
 
@@ -72,8 +71,11 @@ def _opt_float(x) -> float | None:
 
 @dataclass(frozen=True, eq=False)
 class Sample(_Record):
-    """Sample conditions: nu0_hz (Hz), pressure (Pa), temperature (K), each with its
-    standard uncertainty; mole_fraction of the absorber (1); mass_u in u (Doppler width)."""
+    """Sample conditions.
+
+    nu0_hz (Hz), pressure (Pa), temperature (K), each with its standard uncertainty; mole_fraction
+    of the absorber (1); mass_u in u (Doppler width).
+    """
 
     molecule: str
     line: str
@@ -86,11 +88,23 @@ class Sample(_Record):
     mass_u: float | None = None
 
     def __post_init__(self):
-        _set(self, molecule=str(self.molecule), line=str(self.line),
-             **{n: float(getattr(self, n)) for n in (
-                 "nu0_hz", "pressure_pa", "pressure_u_pa", "temperature_k",
-                 "temperature_u_k", "mole_fraction")},
-             mass_u=_opt_float(self.mass_u))
+        _set(
+            self,
+            molecule=str(self.molecule),
+            line=str(self.line),
+            **{
+                n: float(getattr(self, n))
+                for n in (
+                    "nu0_hz",
+                    "pressure_pa",
+                    "pressure_u_pa",
+                    "temperature_k",
+                    "temperature_u_k",
+                    "mole_fraction",
+                )
+            },
+            mass_u=_opt_float(self.mass_u),
+        )
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,9 +139,14 @@ class TransferFunctionData(_Record):
     b12_u_v: np.ndarray | None = None
 
     def __post_init__(self):
-        _set(self, f_hz=_frozen(self.f_hz), b12_v=_frozen(self.b12_v),
-             i1_v=_scalar_or_array(self.i1_v), i2_v=_scalar_or_array(self.i2_v),
-             b12_u_v=_frozen(self.b12_u_v))
+        _set(
+            self,
+            f_hz=_frozen(self.f_hz),
+            b12_v=_frozen(self.b12_v),
+            i1_v=_scalar_or_array(self.i1_v),
+            i2_v=_scalar_or_array(self.i2_v),
+            b12_u_v=_frozen(self.b12_u_v),
+        )
 
     @property
     def _norm_v(self):
@@ -164,9 +183,15 @@ class RingdownData(_Record):
     def __post_init__(self):
         if self.n_avg is not None and np.any(np.mod(self.n_avg, 1) != 0):
             raise ValueError("n_avg must hold whole numbers")
-        _set(self, nu_hz=_frozen(self.nu_hz), signal_v=_frozen(self.signal_v),
-             dt_s=float(self.dt_s), t0_s=float(self.t0_s),
-             n_avg=_frozen(self.n_avg, np.int64), noise_v=_frozen(self.noise_v))
+        _set(
+            self,
+            nu_hz=_frozen(self.nu_hz),
+            signal_v=_frozen(self.signal_v),
+            dt_s=float(self.dt_s),
+            t0_s=float(self.t0_s),
+            n_avg=_frozen(self.n_avg, np.int64),
+            noise_v=_frozen(self.noise_v),
+        )
 
     @property
     def n_points(self) -> int:
@@ -208,7 +233,7 @@ class RingdownData(_Record):
         return _clip_flags(self.signal_v, self.time_s)
 
     @cached_property
-    def saturation(self) -> "Saturation":
+    def saturation(self) -> Saturation:
         """Flat tops below the rails, per transient (see :class:`Saturation`)."""
         return _saturation(self.signal_v, self.time_s)
 
@@ -234,9 +259,12 @@ class RingdownData(_Record):
 
 @dataclass(frozen=True, eq=False)
 class Saturation:
-    """Flat-top detection per transient: ``flags`` (m,) bool; ``end_s`` (m,) time (s) of the last
-    flat sample after extinction (NaN if none); ``scatter_v`` (m,) standard deviation of the
-    flattest window at the top (V); ``noise_v`` (m,) the record's noise scale (V)."""
+    """Flat-top detection per transient.
+
+    ``flags`` (m,) bool; ``end_s`` (m,) time (s) of the last flat sample after extinction (NaN if
+    none); ``scatter_v`` (m,) standard deviation of the flattest window at the top (V); ``noise_v``
+    (m,) the record's noise scale (V).
+    """
 
     flags: np.ndarray
     end_s: np.ndarray
@@ -245,12 +273,14 @@ class Saturation:
 
 
 def _noise_scale(signal: np.ndarray) -> np.ndarray:
-    """Robust white-noise sigma (V) per row from second differences of the record's second half:
-    a decay's curvature per sample is negligible there and a flat top early on is excluded."""
-    tail = signal[:, signal.shape[1] // 2:]
+    """Robust white-noise sigma (V) per row from second differences of the record's second half.
+
+    A decay's curvature per sample is negligible there and a flat top early on is excluded.
+    """
+    tail = signal[:, signal.shape[1] // 2 :]
     d2 = np.diff(tail, n=2, axis=1)
     mad = np.median(np.abs(d2 - np.median(d2, axis=1, keepdims=True)), axis=1)
-    return 1.482602218505602 * mad / np.sqrt(6.0)   # var(second difference) = 6 sigma^2
+    return 1.482602218505602 * mad / np.sqrt(6.0)  # var(second difference) = 6 sigma^2
 
 
 def _saturation(signal: np.ndarray, t: np.ndarray) -> Saturation:
@@ -261,21 +291,22 @@ def _saturation(signal: np.ndarray, t: np.ndarray) -> Saturation:
         empty = np.zeros(m, dtype=bool)
         return Saturation(empty, nan, nan.copy(), nan.copy())
     sigma = _noise_scale(signal)
-    y = signal - signal.mean(axis=1, keepdims=True)   # centred: the running sums stay accurate
+    y = signal - signal.mean(axis=1, keepdims=True)  # centred: the running sums stay accurate
     zero = np.zeros((m, 1))
     c1 = np.concatenate([zero, np.cumsum(y, axis=1)], axis=1)
     c2 = np.concatenate([zero, np.cumsum(y * y, axis=1)], axis=1)
     mean = (c1[:, w:] - c1[:, :-w]) / w
     sd = np.sqrt(np.maximum((c2[:, w:] - c2[:, :-w]) / w - mean**2, 0.0) * (w / (w - 1)))
-    ends = t[w - 1:]                                   # time of each window's last sample
+    ends = t[w - 1 :]  # time of each window's last sample
     # at the top, or at the bottom for a chain that inverts (the clipping rule checks both too)
-    at_top = ((mean >= (y.max(axis=1) - 5.0 * sigma)[:, None])
-              | (mean <= (y.min(axis=1) + 5.0 * sigma)[:, None]))
+    at_top = (mean >= (y.max(axis=1) - 5.0 * sigma)[:, None]) | (
+        mean <= (y.min(axis=1) + 5.0 * sigma)[:, None]
+    )
     flat = at_top & (sd < SAT_FLATNESS * sigma[:, None]) & (sigma > 0)[:, None]
     # a saturated output is pinned through extinction: the flat run must hold a window that
     # starts at or before it (or at the first sample) and ends after it. Only these few windows
     # are tested, so a long quiet baseline late in the record cannot raise a false alarm.
-    i_ext = int(np.searchsorted(t, 0.0))               # first sample at t >= 0
+    i_ext = int(np.searchsorted(t, 0.0))  # first sample at t >= 0
     starts = np.arange(ends.size)
     candidates = at_top & ((starts <= i_ext) & (ends > 0))[None, :]
     seeds = flat & candidates
@@ -285,7 +316,9 @@ def _saturation(signal: np.ndarray, t: np.ndarray) -> Saturation:
     after = (~flat) & (starts[None, :] > first[:, None])
     stop = np.where(after.any(axis=1), np.argmax(after, axis=1), ends.size) - 1
     end_s = np.where(flags, ends[np.clip(stop, 0, ends.size - 1)], np.nan)
-    scatter = np.where(candidates.any(axis=1), np.min(np.where(candidates, sd, np.inf), axis=1), np.nan)
+    scatter = np.where(
+        candidates.any(axis=1), np.min(np.where(candidates, sd, np.inf), axis=1), np.nan
+    )
     for a in (flags, end_s, scatter, sigma):
         a.setflags(write=False)
     return Saturation(flags, end_s, scatter, sigma)
@@ -300,19 +333,22 @@ def _clip_flags(signal: np.ndarray, t: np.ndarray) -> np.ndarray:
     width = k - CLIP_RUN + 1
     for extreme in (signal.max(axis=1, keepdims=True), signal.min(axis=1, keepdims=True)):
         at = signal == extreme
-        start = np.logical_and.reduce([at[:, j:j + width] for j in range(CLIP_RUN)])
+        start = np.logical_and.reduce([at[:, j : j + width] for j in range(CLIP_RUN)])
         in_run = np.zeros_like(at)
         for j in range(CLIP_RUN):
-            in_run[:, j:j + width] |= start
+            in_run[:, j : j + width] |= start
         flags |= (in_run & late).any(axis=1)
     return flags
 
 
 @dataclass(frozen=True, eq=False)
 class CmdsData(_Record):
-    """Cavity mode dispersion spectroscopy, p points: nu_hz empty-cavity mode frequency,
-    shift_hz mode shift and shift_u_hz its standard uncertainty; optional width_hz mode
-    half width at half maximum and width_u_hz its uncertainty. All Hz, shape (p,)."""
+    """Cavity mode dispersion spectroscopy, p points.
+
+    nu_hz empty-cavity mode frequency, shift_hz mode shift and shift_u_hz its standard uncertainty;
+    optional width_hz mode half width at half maximum and width_u_hz its uncertainty. All Hz, shape
+    (p,).
+    """
 
     nu_hz: np.ndarray
     shift_hz: np.ndarray
@@ -337,8 +373,11 @@ class Config(_Record):
 
 @dataclass(frozen=True, eq=False)
 class Bundle(_Record):
-    """One measurement campaign. ``configs`` maps name -> Config in file order (a sequence
-    of Config is accepted and keyed by name)."""
+    """One measurement campaign.
+
+    ``configs`` maps name -> Config in file order (a sequence of Config is accepted and keyed by
+    name).
+    """
 
     sample: Sample
     cavity: Cavity
@@ -346,8 +385,11 @@ class Bundle(_Record):
     description: str | None = None
 
     def __post_init__(self):
-        items = (self.configs.items() if isinstance(self.configs, Mapping)
-                 else ((c.name, c) for c in self.configs))
+        items = (
+            self.configs.items()
+            if isinstance(self.configs, Mapping)
+            else ((c.name, c) for c in self.configs)
+        )
         configs = dict(items)
         for key, cfg in configs.items():
             if key != cfg.name:
@@ -375,9 +417,9 @@ class BundleError(ValueError):
     def __init__(self, file: str | os.PathLike, violations: list[Violation]):
         self.file = os.fspath(file)
         self.violations = list(violations)
-        lines = [f"{self.file}: not a valid {FORMAT_NAME} v{FORMAT_VERSION} file "
-                 f"({len(self.violations)} problem(s)):"]
+        lines = [
+            f"{self.file}: not a valid {FORMAT_NAME} v{FORMAT_VERSION} file "
+            f"({len(self.violations)} problem(s)):"
+        ]
         lines += [f"{self.file}: {v}" for v in self.violations]
         super().__init__("\n".join(lines))
-
-

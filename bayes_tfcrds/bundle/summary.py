@@ -1,14 +1,14 @@
 """A short human-readable summary of a bundle, and ``bayes-tfcrds validate``'s report."""
+
 from __future__ import annotations
 
 import os
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import TORR, hz_to_wavenumber_cm
-from bayes_tfcrds.bundle.records import Bundle, FORMAT_NAME, FORMAT_VERSION
 from bayes_tfcrds.bundle.reader import validate_file
-
+from bayes_tfcrds.bundle.records import FORMAT_NAME, FORMAT_VERSION, Bundle
+from bayes_tfcrds.core.constants import TORR, hz_to_wavenumber_cm
 
 # --------------------------------------------------------------------------- summary
 
@@ -34,9 +34,8 @@ def summarize(bundle: Bundle) -> str:
     out += [
         f"sample: {_printable(s.molecule)} {_printable(s.line)}, nu0 = {s.nu0_hz:.12g} Hz "
         f"({float(hz_to_wavenumber_cm(s.nu0_hz)):.6f} cm^-1)",
-        f"  p = {s.pressure_pa:.6g} +/- {s.pressure_u_pa:.2g} Pa "
-        f"({s.pressure_pa / TORR:.6g} Torr), T = {s.temperature_k:.6g} +/- "
-        f"{s.temperature_u_k:.2g} K{extra}",
+        f"  p = {s.pressure_pa:.6g} +/- {s.pressure_u_pa:.2g} Pa ({s.pressure_pa / TORR:.6g} "
+        f"Torr), T = {s.temperature_k:.6g} +/- {s.temperature_u_k:.2g} K{extra}",
         f"cavity: FSR = {c.fsr_hz:.10g} Hz"
         + ("" if c.finesse is None else f", finesse = {c.finesse:.6g}"),
         f"configurations: {len(bundle.configs)}",
@@ -45,38 +44,57 @@ def summarize(bundle: Bundle) -> str:
         rd = cfg.ringdowns
         head = f"  {_printable(name)}"
         out.append(head + (f": {_printable(cfg.description)}" if cfg.description else ""))
-        out.append(f"    ringdowns: {rd.n_points} points x {rd.n_samples} samples, "
-                   f"t0 = {rd.t0_s:.6g} s, dt = {rd.dt_s:.6g} s, record length "
-                   f"{rd.n_samples * rd.dt_s:.6g} s; nu {_range(rd.nu_hz, 'Hz')}")
-        out.append("      n_avg: " + ("absent" if rd.n_avg is None else
-                                      f"{rd.n_avg.min()} .. {rd.n_avg.max()}")
-                   + "; noise_v: " + ("absent" if rd.noise_v is None else
-                                      "per sample (m, k)" if rd.noise_v.ndim == 2
-                                      else "per transient (m,)"))
+        out.append(
+            f"    ringdowns: {rd.n_points} points x {rd.n_samples} samples, t0 = {rd.t0_s:.6g} s, "
+            f"dt = {rd.dt_s:.6g} s, record length {rd.n_samples * rd.dt_s:.6g} s; nu "
+            f"{_range(rd.nu_hz, 'Hz')}"
+        )
+        out.append(
+            "      n_avg: "
+            + ("absent" if rd.n_avg is None else f"{rd.n_avg.min()} .. {rd.n_avg.max()}")
+            + "; noise_v: "
+            + (
+                "absent"
+                if rd.noise_v is None
+                else "per sample (m, k)"
+                if rd.noise_v.ndim == 2
+                else "per transient (m,)"
+            )
+        )
         saturated = np.flatnonzero(rd.saturated)
         if saturated.size:
-            listed = ", ".join(f"#{i} (nu = {rd.nu_hz[i]:.12g} Hz, flat until "
-                               f"{rd.saturation.end_s[i]:.3g} s)" for i in saturated)
+            listed = ", ".join(
+                f"#{i} (nu = {rd.nu_hz[i]:.12g} Hz, flat until {rd.saturation.end_s[i]:.3g} s)"
+                for i in saturated
+            )
             out.append(f"      SATURATED transients ({saturated.size}): {listed}")
         clipped = np.flatnonzero(rd.clipped & ~rd.saturated)
         if clipped.size:
             listed = ", ".join(f"#{i} (nu = {rd.nu_hz[i]:.12g} Hz)" for i in clipped)
             out.append(f"      CLIPPED transients ({clipped.size}): {listed}")
         tf = cfg.transfer_function
-        out.append("    transfer_function: absent" if tf is None else
-                   f"    transfer_function: {tf.f_hz.size} beat frequencies, "
-                   f"f = {_range(tf.f_hz, 'Hz')}"
-                   + ("" if tf.b12_u_v is None else ", with b12_u_v"))
+        out.append(
+            "    transfer_function: absent"
+            if tf is None
+            else f"    transfer_function: {tf.f_hz.size} beat frequencies, f = "
+            f"{_range(tf.f_hz, 'Hz')}" + ("" if tf.b12_u_v is None else ", with b12_u_v")
+        )
         cm = cfg.cmds
-        out.append("    cmds: absent" if cm is None else
-                   f"    cmds: {cm.nu_hz.size} points, widths "
-                   + ("present" if cm.width_hz is not None else "absent"))
+        out.append(
+            "    cmds: absent"
+            if cm is None
+            else f"    cmds: {cm.nu_hz.size} points, widths "
+            + ("present" if cm.width_hz is not None else "absent")
+        )
     return "\n".join(out)
 
 
 def main_validate(path) -> int:
-    """``bayes-tfcrds validate FILE``: print the summary and warnings and return 0 for a
-    good bundle; print every violation with its path and return 1 otherwise."""
+    """``bayes-tfcrds validate FILE``.
+
+    Print the summary and warnings and return 0 for a good bundle; print every violation with its
+    path and return 1 otherwise.
+    """
     name = os.fspath(path)
     bundle, errors, warnings = validate_file(name)
     if errors:
@@ -92,5 +110,3 @@ def main_validate(path) -> int:
     if not errors:
         print(f"{name}: OK")
     return 1 if errors else 0
-
-

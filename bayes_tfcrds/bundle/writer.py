@@ -1,7 +1,6 @@
 """Write a bundle (and its simulation truth) to HDF5 as FORMAT.md says, atomically."""
-from __future__ import annotations
 
-from bayes_tfcrds.output.files import atomic_path
+from __future__ import annotations
 
 import dataclasses
 import os
@@ -10,9 +9,17 @@ from collections.abc import Mapping
 import h5py
 import numpy as np
 
-from bayes_tfcrds.bundle.records import Bundle, BundleError, CmdsData, FORMAT_NAME, FORMAT_VERSION, RingdownData, TransferFunctionData
 from bayes_tfcrds.bundle.reader import _join, validate_file
-
+from bayes_tfcrds.bundle.records import (
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    Bundle,
+    BundleError,
+    CmdsData,
+    RingdownData,
+    TransferFunctionData,
+)
+from bayes_tfcrds.output.files import atomic_path
 
 # --------------------------------------------------------------------------- writing
 
@@ -24,14 +31,17 @@ def _utf8_lcpl():
 
 
 def _group(parent, name: str, ordered: bool = False) -> h5py.Group:
-    """A new group without timestamps (byte-identical output); ``ordered`` keeps creation
-    order so readers see configurations in the writer's order."""
+    """A new group without timestamps (byte-identical output).
+
+    ``ordered`` keeps creation order so readers see configurations in the writer's order.
+    """
     gcpl = h5py.h5p.create(h5py.h5p.GROUP_CREATE)
     gcpl.set_obj_track_times(False)
     if ordered:
         gcpl.set_link_creation_order(h5py.h5p.CRT_ORDER_TRACKED | h5py.h5p.CRT_ORDER_INDEXED)
-    return h5py.Group(h5py.h5g.create(parent.id, name.encode("utf-8"),
-                                      lcpl=_utf8_lcpl(), gcpl=gcpl))
+    return h5py.Group(
+        h5py.h5g.create(parent.id, name.encode("utf-8"), lcpl=_utf8_lcpl(), gcpl=gcpl)
+    )
 
 
 def _dataset(group, name: str, data) -> None:
@@ -76,13 +86,15 @@ def _write_truth(group, truth: Mapping, where: str) -> None:
         if isinstance(value, Mapping):
             _write_truth(_group(group, key), value, here)
         elif isinstance(value, (str, bool, int, float, np.generic)) or (
-                isinstance(value, np.ndarray) and value.ndim == 0):
+            isinstance(value, np.ndarray) and value.ndim == 0
+        ):
             group.attrs[key] = value
         elif isinstance(value, (np.ndarray, list, tuple)):
             array = np.asarray(value)
             if array.dtype.kind == "U":
-                group.create_dataset(key, data=array.astype(object),
-                                     dtype=h5py.string_dtype(), track_times=False)
+                group.create_dataset(
+                    key, data=array.astype(object), dtype=h5py.string_dtype(), track_times=False
+                )
             elif array.dtype.kind in "biuf":
                 _dataset(group, key, array)
             else:
@@ -100,8 +112,15 @@ def _write_file(f: h5py.File, bundle: Bundle, truth: Mapping | None) -> None:
     g = _group(f, "sample")
     g.attrs["molecule"] = s.molecule
     g.attrs["line"] = s.line
-    for name in ("nu0_hz", "pressure_pa", "pressure_u_pa", "temperature_k", "temperature_u_k",
-                 "mole_fraction", "mass_u"):
+    for name in (
+        "nu0_hz",
+        "pressure_pa",
+        "pressure_u_pa",
+        "temperature_k",
+        "temperature_u_k",
+        "mole_fraction",
+        "mass_u",
+    ):
         if getattr(s, name) is not None:
             g.attrs[name] = float(getattr(s, name))
     g = _group(f, "cavity")
@@ -123,9 +142,10 @@ def _write_file(f: h5py.File, bundle: Bundle, truth: Mapping | None) -> None:
 
 
 def save_bundle(bundle: Bundle, path, truth: Mapping | None = None) -> None:
-    """Write ``bundle`` (SI units) to ``path`` exactly as FORMAT.md, with optional ``truth``
-    (nested dict: scalars/str -> attributes, arrays -> datasets, dicts -> groups) under
-    /truth.
+    """Write ``bundle`` (SI units) to ``path`` exactly as FORMAT.md says.
+
+    The optional ``truth`` (nested dict: scalars/str -> attributes, arrays -> datasets, dicts ->
+    groups) goes under /truth.
 
     Atomic: written to a temporary file in the same directory, checked with the reader
     (so nothing is written that load_bundle would refuse: BundleError), then moved into
@@ -142,5 +162,3 @@ def save_bundle(bundle: Bundle, path, truth: Mapping | None = None) -> None:
         _, errors, _ = validate_file(os.fspath(tmp))
         if errors:
             raise BundleError(target, errors)
-
-

@@ -3,15 +3,16 @@
 Everything inside the package is SI. Spectroscopic units (cm^-1, cm^-2, cm/molecule) are
 produced only by the conversion helpers here, at the edges (reports, CLI output).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-C = 299_792_458.0            # speed of light, m/s (exact)
-K_B = 1.380_649e-23          # Boltzmann constant, J/K (exact)
-AMU = 1.660_539_066_60e-27   # unified atomic mass unit, kg
-TORR = 101_325.0 / 760.0     # Pa per Torr
-ATM = 101_325.0              # Pa per standard atmosphere
+C = 299_792_458.0  # speed of light, m/s (exact)
+K_B = 1.380_649e-23  # Boltzmann constant, J/K (exact)
+AMU = 1.660_539_066_60e-27  # unified atomic mass unit, kg
+TORR = 101_325.0 / 760.0  # Pa per Torr
+ATM = 101_325.0  # Pa per standard atmosphere
 
 
 def number_density(pressure_pa, temperature_k, mole_fraction=1.0):

@@ -16,13 +16,14 @@ Also here: :func:`normalized_error` (E_n, ISO/IEC 17043), :func:`ratio` (first-o
 uncertainty of a/b) and :func:`monte_carlo_check` (propagation of a multivariate normal
 through the model, JCGM 101 style, to validate a linear budget).
 """
+
 from __future__ import annotations
 
 import csv
 import io
 import math
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
 
 import numpy as np
 from scipy import stats
@@ -92,8 +93,9 @@ class Component:
         if u < 0:
             raise ValueError(f"{self.name}: standard uncertainty must be >= 0, got {u}")
         object.__setattr__(self, "u", u)
-        object.__setattr__(self, "sensitivity",
-                           _finite(self.sensitivity, f"{self.name}: sensitivity"))
+        object.__setattr__(
+            self, "sensitivity", _finite(self.sensitivity, f"{self.name}: sensitivity")
+        )
         dof = float(self.dof)
         if not dof > 0:  # also rejects nan
             raise ValueError(f"{self.name}: dof must be > 0 (inf allowed), got {dof}")
@@ -202,11 +204,10 @@ class Budget:
         assumes independent inputs; with correlations it is computed the same way (u_c
         from Eq. 16) but is only indicative.
         """
-        den = sum(c.contribution ** 4 / c.dof for c in self.components
-                  if math.isfinite(c.dof))
+        den = sum(c.contribution**4 / c.dof for c in self.components if math.isfinite(c.dof))
         if den == 0.0:
             return math.inf
-        return self.combined_u ** 4 / den
+        return self.combined_u**4 / den
 
     def coverage_factor(self, p: float = 0.95, truncate: bool = True) -> float:
         """k_p = t_p(nu_eff): two-sided Student-t quantile for coverage probability p.
@@ -238,33 +239,49 @@ class Budget:
         'share' is the fraction of u_c^2 (see :meth:`shares`).
         """
         sh = self.shares()
-        return [{
-            "quantity": c.name,
-            "value": c.value,
-            "standard uncertainty": c.u,
-            "unit": c.unit,
-            "sensitivity coefficient": c.sensitivity,
-            "contribution to u(y)": c.contribution,
-            "share": sh[c.name],
-            "dof": c.dof,
-            "note": c.note,
-        } for c in self.components]
+        return [
+            {
+                "quantity": c.name,
+                "value": c.value,
+                "standard uncertainty": c.u,
+                "unit": c.unit,
+                "sensitivity coefficient": c.sensitivity,
+                "contribution to u(y)": c.contribution,
+                "share": sh[c.name],
+                "dof": c.dof,
+                "note": c.note,
+            }
+            for c in self.components
+        ]
 
     def to_markdown(self) -> str:
-        """Markdown table, rounded for reading: u to 2 significant digits, value to the
-        same decimal place as its u; followed by u_c, nu_eff and expanded uncertainties."""
+        """Markdown table, rounded for reading.
+
+        U to 2 significant digits, value to the same decimal place as its u; followed by u_c, nu_eff
+        and expanded uncertainties.
+        """
         head = [
-            "quantity", "value", "standard uncertainty", "unit",
-            "sensitivity coefficient", f"contribution to u(y) / {self.unit}",
-            "share", "dof", "note",
+            "quantity",
+            "value",
+            "standard uncertainty",
+            "unit",
+            "sensitivity coefficient",
+            f"contribution to u(y) / {self.unit}",
+            "share",
+            "dof",
+            "note",
         ]
-        lines = ["| " + " | ".join(head) + " |",
-                 "|" + "|".join(["---", "---:", "---:", "---", "---:", "---:", "---:",
-                                 "---:", "---"]) + "|"]
+        lines = [
+            "| " + " | ".join(head) + " |",
+            "|"
+            + "|".join(["---", "---:", "---:", "---", "---:", "---:", "---:", "---:", "---"])
+            + "|",
+        ]
         for row in self.to_rows():
             cells = [
                 row["quantity"],
-                "—" if row["value"] is None
+                "—"
+                if row["value"] is None
                 else format_value(row["value"], row["standard uncertainty"]),
                 format_uncertainty(row["standard uncertainty"]),
                 row["unit"],
@@ -279,55 +296,72 @@ class Budget:
         nu = self.effective_dof
         lines += [
             "",
-            f"{self.quantity} = {format_value(self.value, uc)} {self.unit}; "
-            f"combined standard uncertainty u_c = {format_uncertainty(uc)} {self.unit}; "
-            f"effective dof nu_eff = {_format_dof(nu)}.",
+            f"{self.quantity} = {format_value(self.value, uc)} {self.unit}; combined standard "
+            f"uncertainty u_c = {format_uncertainty(uc)} {self.unit}; effective dof nu_eff = "
+            f"{_format_dof(nu)}.",
             f"Expanded uncertainty U (k = 2) = {format_uncertainty(self.expanded(2.0))} "
             f"{self.unit}.",
         ]
         if nu > 0:
             k95 = self.coverage_factor(0.95)
-            lines.append(f"Expanded uncertainty U_95 (k = t_95(nu_eff) = {k95:.3f}) = "
-                         f"{format_uncertainty(self.expanded(k95))} {self.unit}.")
-        lines.append(f"Sensitivity coefficients in {self.unit} per unit of the input; "
-                     "share = fraction of u_c^2.")
+            lines.append(
+                f"Expanded uncertainty U_95 (k = t_95(nu_eff) = {k95:.3f}) = "
+                f"{format_uncertainty(self.expanded(k95))} {self.unit}."
+            )
+        lines.append(
+            f"Sensitivity coefficients in {self.unit} per unit of the input; share = fraction of "
+            "u_c^2."
+        )
         if self.correlations:
             pairs = ", ".join(f"r({a}, {b}) = {r:g}" for (a, b), r in self.correlations.items())
             lines.append(f"Correlations: {pairs} (nu_eff only indicative).")
         return "\n".join(lines) + "\n"
 
     def to_csv(self) -> str:
-        """CSV (stdlib csv) with a header line of :data:`COLUMNS` and one line per
-        component at full precision (repr of floats; empty value for None; 'inf' dof)."""
+        """CSV (stdlib csv): a header line of :data:`COLUMNS` and one line per component.
+
+        Full precision (repr of floats); empty value for None; 'inf' dof.
+        """
         buf = io.StringIO()
         w = csv.writer(buf, lineterminator="\n")
         w.writerow(COLUMNS)
         for row in self.to_rows():
-            w.writerow(["" if row[k] is None else (repr(row[k]) if isinstance(row[k], float)
-                                                   else row[k]) for k in COLUMNS])
+            w.writerow(
+                [
+                    ""
+                    if row[k] is None
+                    else (repr(row[k]) if isinstance(row[k], float) else row[k])
+                    for k in COLUMNS
+                ]
+            )
         return buf.getvalue()
 
     def to_dict(self) -> dict:
-        """JSON-ready dict (strict JSON: infinite dof become the string "inf", undefined
-        shares None, correlations a list of {a, b, r})."""
+        """JSON-ready dict (strict JSON.
+
+        Infinite dof become the string "inf", undefined shares None, correlations a list of {a, b,
+        r}).
+        """
         sh = self.shares()
         return {
             "quantity": self.quantity,
             "value": self.value,
             "unit": self.unit,
-            "components": [{
-                "name": c.name,
-                "value": c.value,
-                "u": c.u,
-                "unit": c.unit,
-                "sensitivity": c.sensitivity,
-                "contribution": c.contribution,
-                "share": _json_float(sh[c.name]),
-                "dof": _json_float(c.dof),
-                "note": c.note,
-            } for c in self.components],
-            "correlations": [{"a": a, "b": b, "r": r}
-                             for (a, b), r in self.correlations.items()],
+            "components": [
+                {
+                    "name": c.name,
+                    "value": c.value,
+                    "u": c.u,
+                    "unit": c.unit,
+                    "sensitivity": c.sensitivity,
+                    "contribution": c.contribution,
+                    "share": _json_float(sh[c.name]),
+                    "dof": _json_float(c.dof),
+                    "note": c.note,
+                }
+                for c in self.components
+            ],
+            "correlations": [{"a": a, "b": b, "r": r} for (a, b), r in self.correlations.items()],
             "combined_u": self.combined_u,
             "effective_dof": _json_float(self.effective_dof),
             "expanded_k2": self.expanded(2.0),
@@ -336,8 +370,10 @@ class Budget:
 
 # --- comparison helpers ----------------------------------------------------------------
 def normalized_error(x: float, U_x: float, y: float, U_y: float) -> float:
-    """E_n = (x - y) / sqrt(U_x^2 + U_y^2) with expanded (k = 2) uncertainties
-    (ISO/IEC 17043): |E_n| <= 1 means agreement. x, y, U_x, U_y in one unit."""
+    """E_n = (x - y) / sqrt(U_x^2 + U_y^2) with expanded (k = 2) uncertainties (ISO/IEC 17043).
+
+    |E_n| <= 1 means agreement. x, y, U_x, U_y in one unit.
+    """
     den = math.hypot(float(U_x), float(U_y))
     if not den > 0:
         raise ValueError("U_x and U_y cannot both be zero")
@@ -345,22 +381,25 @@ def normalized_error(x: float, U_x: float, y: float, U_y: float) -> float:
 
 
 def ratio(a: float, u_a: float, b: float, u_b: float, corr: float = 0.0) -> tuple[float, float]:
-    """r = a/b and its first-order standard uncertainty (GUM Eq. 16 with c_a = 1/b,
-    c_b = -a/b^2 and r(a, b) = corr). Written with absolute sensitivities so a = 0 works;
-    u_r is in the unit of a/b."""
+    """r = a/b and its first-order standard uncertainty.
+
+    GUM Eq. 16 with c_a = 1/b, c_b = -a/b^2 and r(a, b) = corr. Written with absolute
+    sensitivities so a = 0 works; u_r is in the unit of a/b.
+    """
     a, u_a, b, u_b, corr = map(float, (a, u_a, b, u_b, corr))
     if b == 0.0:
         raise ValueError("b must be non-zero")
     if abs(corr) > 1.0:
         raise ValueError(f"|corr| must be <= 1, got {corr}")
     sa = u_a / b
-    sb = -a * u_b / b ** 2
+    sb = -a * u_b / b**2
     var = sa * sa + sb * sb + 2.0 * corr * sa * sb
     return a / b, math.sqrt(max(var, 0.0))
 
 
-def monte_carlo_check(f: Callable[..., np.ndarray], means: Iterable[float], cov,
-                      rng, n: int = 100_000) -> tuple[float, float]:
+def monte_carlo_check(
+    f: Callable[..., np.ndarray], means: Iterable[float], cov, rng, n: int = 100_000
+) -> tuple[float, float]:
     """Propagate X ~ N(means, cov) through f by sampling (JCGM 101 style): (mean, sd) of Y.
 
     f is vectorised and called as f(x_1, ..., x_N) with one array of n draws per input
@@ -404,8 +443,10 @@ def _fixed_ok(e: int) -> bool:
 
 
 def format_uncertainty(u: float, digits: int = 2) -> str:
-    """u rounded to `digits` significant digits (GUM 7.2.6), fixed-point for
-    1e-4 <= u < 1e6, else scientific: 0.028868 -> '0.029', 1.1547e-6 -> '1.2e-06'."""
+    """u rounded to `digits` significant digits (GUM 7.2.6).
+
+    Fixed-point for 1e-4 <= u < 1e6, else scientific: 0.028868 -> '0.029', 1.1547e-6 -> '1.2e-06'.
+    """
     u = float(u)
     if u == 0.0 or not math.isfinite(u):
         return f"{u:g}"
@@ -417,13 +458,15 @@ def format_uncertainty(u: float, digits: int = 2) -> str:
 
 
 def format_value(x: float, u: float, digits: int = 2) -> str:
-    """x rounded to the decimal place of the last significant digit of u as printed by
-    :func:`format_uncertainty` (GUM 7.2.6); 6 significant digits if u is 0 or not finite."""
+    """x rounded to the decimal place of the last significant digit of u (GUM 7.2.6).
+
+    u as printed by :func:`format_uncertainty`; 6 significant digits if u is 0 or not finite.
+    """
     x, u = float(x), float(u)
     if u == 0.0 or not math.isfinite(u) or not math.isfinite(x):
         return f"{x:.6g}"
     e = _lead_exponent(u, digits)
-    last = e - digits + 1                      # place of u's last digit, 10**last
+    last = e - digits + 1  # place of u's last digit, 10**last
     if _fixed_ok(e):
         return f"{round(x, -last) + 0.0:.{max(-last, 0)}f}"
     if x == 0.0:
@@ -431,7 +474,7 @@ def format_value(x: float, u: float, digits: int = 2) -> str:
     ex = math.floor(math.log10(abs(x)))
     if ex >= last:
         return f"{x:.{ex - last}e}"
-    return f"{x / 10.0 ** e:.{digits - 1}f}e{e:+03d}"  # |x| below u's last digit
+    return f"{x / 10.0**e:.{digits - 1}f}e{e:+03d}"  # |x| below u's last digit
 
 
 def _format_dof(nu: float) -> str:

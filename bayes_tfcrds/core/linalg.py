@@ -1,4 +1,5 @@
 """Small numerical helpers shared by the fitters."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -55,5 +56,7 @@ def central_hessian(fn, theta, steps) -> np.ndarray:
         for j in range(i + 1, p):
             fpp = fn(theta + eye[i] + eye[j])
             fmm = fn(theta - eye[i] - eye[j])
-            hess[i, j] = hess[j, i] = (fpp - fp[i] - fp[j] + 2 * f0 - fm[i] - fm[j] + fmm) / (2 * h[i] * h[j])
+            hess[i, j] = hess[j, i] = (fpp - fp[i] - fp[j] + 2 * f0 - fm[i] - fm[j] + fmm) / (
+                2 * h[i] * h[j]
+            )
     return hess

@@ -1,6 +1,8 @@
-"""Estimation from the data: the beat-note fit of H, ring-down decay times (CRDS, TF-CRDS),
-the Appendix B refinement of H on many transients, the H calibration that combines them,
-spectra, line-profile fits and the line analysis of one configuration.
+"""Estimation from the data.
+
+The beat-note fit of H, ring-down decay times (CRDS, TF-CRDS), the Appendix B refinement of H on
+many transients, the H calibration that combines them, spectra, line-profile fits and the line
+analysis of one configuration.
 
 May import: core, output, bundle, physics.
 """

@@ -3,6 +3,7 @@
 Weighted least squares over several starts; the scale K is the letter's normalisation.
 Frequencies in Hz, magnitudes dimensionless.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
@@ -12,7 +13,6 @@ from scipy import optimize
 
 from bayes_tfcrds.core.linalg import central_jacobian, covariance_from_fisher
 from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, TFParams, transfer_function
-
 
 # --------------------------------------------------------------------------- beat-note fit
 
@@ -58,26 +58,39 @@ class TFFit:
 
 
 def _default_starts(f_hz, h_mag, variant):
-    """Starting points covering the two shapes Eq. 2 takes in practice: a fast first-order
-    roll-off with a slow resonant correction, or (as in the letter's chains) a slow
-    first-order tail carrying 1/(1 + A_r) of the gain beside a fast resonant main path."""
+    """Starting points covering the two shapes Eq. 2 takes in practice.
+
+    A fast first-order roll-off with a slow resonant correction, or (as in the letter's chains) a
+    slow first-order tail carrying 1/(1 + A_r) of the gain beside a fast resonant main path.
+    """
     hn = h_mag / np.median(h_mag[: max(3, len(h_mag) // 10)])
     below = np.nonzero(hn < 1 / np.sqrt(2))[0]
     f3 = f_hz[below[0]] if below.size else f_hz[-1]
     starts = []
     for fr_ratio in (0.01, 0.1):
         for a_r in (-0.1, 0.1, 0.3):
-            starts.append(TFParams(f_c_hz=f3, a_r=a_r, f_r_hz=fr_ratio * f3, gamma_r=0.7, n_r=2.0,
-                                   variant=variant))
+            starts.append(
+                TFParams(
+                    f_c_hz=f3, a_r=a_r, f_r_hz=fr_ratio * f3, gamma_r=0.7, n_r=2.0, variant=variant
+                )
+            )
     for fc_ratio in (1e-3, 1e-2, 1e-1):
         for a_r in (3.0, 10.0, 30.0):
-            starts.append(TFParams(f_c_hz=fc_ratio * f3, a_r=a_r, f_r_hz=f3, gamma_r=0.7, n_r=2.0,
-                                   variant=variant))
+            starts.append(
+                TFParams(
+                    f_c_hz=fc_ratio * f3, a_r=a_r, f_r_hz=f3, gamma_r=0.7, n_r=2.0, variant=variant
+                )
+            )
     return starts
 
 
-def fit_beat_note(tf_data, variant: str = "causal", free=PARAM_NAMES, start: TFParams | None = None,
-                  fixed: TFParams | None = None) -> TFFit:
+def fit_beat_note(
+    tf_data,
+    variant: str = "causal",
+    free=PARAM_NAMES,
+    start: TFParams | None = None,
+    fixed: TFParams | None = None,
+) -> TFFit:
     """Fit K |H(f_B; theta)| to a measured |H(f_B)| by weighted least squares.
 
     ``tf_data`` needs ``f_hz`` (Hz), ``h_mag`` and ``h_mag_u`` (dimensionless, u may be None).
@@ -93,7 +106,9 @@ def fit_beat_note(tf_data, variant: str = "causal", free=PARAM_NAMES, start: TFP
     free = tuple(free)
     for name in free:
         if name not in PARAM_NAMES:
-            raise ValueError(f"unknown transfer-function parameter {name!r}; choose from {PARAM_NAMES}")
+            raise ValueError(
+                f"unknown transfer-function parameter {name!r}; choose from {PARAM_NAMES}"
+            )
     if len(f) < len(free) + 2:
         raise ValueError(f"{len(f)} beat frequencies cannot constrain {len(free) + 1} parameters")
     # positive parameters are searched in log space; a_r linearly
@@ -115,23 +130,36 @@ def fit_beat_note(tf_data, variant: str = "causal", free=PARAM_NAMES, start: TFP
 
     starts = [start] if start is not None else _default_starts(f, y, variant)
     if fixed is not None:
-        starts = [replace(fixed, **{n: getattr(s, n) for n in free}, variant=variant) for s in starts]
+        starts = [
+            replace(fixed, **{n: getattr(s, n) for n in free}, variant=variant) for s in starts
+        ]
     lo = np.where(logp, -np.inf, -0.99)
     lo = np.append(lo, 0.0)
     hi = np.append(np.full(len(free), np.inf), np.inf)
 
     def solve(x0, base, tol, nfev):
         try:
-            return optimize.least_squares(resid, x0, args=(base,), bounds=(lo, hi), x_scale="jac",
-                                          xtol=tol, ftol=tol, gtol=tol, max_nfev=nfev)
+            return optimize.least_squares(
+                resid,
+                x0,
+                args=(base,),
+                bounds=(lo, hi),
+                x_scale="jac",
+                xtol=tol,
+                ftol=tol,
+                gtol=tol,
+                max_nfev=nfev,
+            )
         except ValueError:
             return None
 
     # coarse pass from every start, then polish the three best
     coarse = []
     for s in starts:
-        x0 = np.append(np.where(logp, np.log(np.maximum(s.as_vector(free), 1e-300)), s.as_vector(free)),
-                       np.median(y[: max(3, len(y) // 10)]))
+        x0 = np.append(
+            np.where(logp, np.log(np.maximum(s.as_vector(free), 1e-300)), s.as_vector(free)),
+            np.median(y[: max(3, len(y) // 10)]),
+        )
         x0 = np.clip(x0, lo + 1e-9, hi)
         sol = solve(x0, s, 1e-6, 300) if len(starts) > 1 else solve(x0, s, 1e-14, 4000)
         if sol is not None:
@@ -160,6 +188,16 @@ def fit_beat_note(tf_data, variant: str = "causal", free=PARAM_NAMES, start: TFP
     cov = covariance_from_fisher(jac.T @ jac)
     if not weighted:
         cov = cov * chi2 / max(dof, 1)
-    return TFFit(params=params, free=free, scale=float(scale), cov=cov, chi2=chi2, dof=dof, f_hz=f,
-                 h_mag=y, h_mag_u=np.asarray(u, float) if weighted else np.full_like(y, np.nan),
-                 residuals=r, weighted=weighted)
+    return TFFit(
+        params=params,
+        free=free,
+        scale=float(scale),
+        cov=cov,
+        chi2=chi2,
+        dof=dof,
+        f_hz=f,
+        h_mag=y,
+        h_mag_u=np.asarray(u, float) if weighted else np.full_like(y, np.nan),
+        residuals=r,
+        weighted=weighted,
+    )

@@ -4,20 +4,21 @@ beat-note |H| fit  ->  multi-ring-down refinement  ->  ring-down fits at each t_
 Each step is a pure function of the bundle's data and explicit options; the CLI, studies and
 the Bayesian layer compose them.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note
 from bayes_tfcrds.fit.refine import RefinedTF, refine_transfer_function
 from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns, fit_transients
-from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note
 from bayes_tfcrds.physics.transfer_function import TFParams
 
-DEFAULT_T_CUTS = (2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6)   # the letter's truncation times, s
-BEAT_FREE = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")     # n_r = 2 keeps the chain rational (causal)
-REFINE_FREE = ("f_c_hz",)                               # the letter refines f_c only
+DEFAULT_T_CUTS = (2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6)  # the letter's truncation times, s
+BEAT_FREE = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")  # n_r = 2 keeps the chain rational (causal)
+REFINE_FREE = ("f_c_hz",)  # the letter refines f_c only
 
 
 class AnalysisError(ValueError):
@@ -36,10 +37,12 @@ class Calibration:
         return self.refined.params if self.refined is not None else self.beat.params
 
 
-MIRROR_DCHI2 = 9.0     # beat-note chi2 difference below which |H| alone cannot choose (3 sigma)
+MIRROR_DCHI2 = 9.0  # beat-note chi2 difference below which |H| alone cannot choose (3 sigma)
 
 
-def beat_note_fit(config, variant: str = "causal", free=BEAT_FREE, window: str = "extinction") -> TFFit:
+def beat_note_fit(
+    config, variant: str = "causal", free=BEAT_FREE, window: str = "extinction"
+) -> TFFit:
     """Fit Eq. 2 to the configuration's beat-note measurement, its phase ambiguity resolved.
 
     The beat note measures |H| only, and |H| nearly repeats itself under A_r -> -A_r/(1 + 2 A_r)
@@ -50,8 +53,10 @@ def beat_note_fit(config, variant: str = "causal", free=BEAT_FREE, window: str =
     transients have the lower total chi2 is taken.
     """
     if config.transfer_function is None:
-        raise AnalysisError(f"configuration {config.name!r} has no /configs/{config.name}/transfer_function "
-                            "group: TF-CRDS needs the beat-note measurement of the chain")
+        raise AnalysisError(
+            f"configuration {config.name!r} has no /configs/{config.name}/transfer_function "
+            "group: TF-CRDS needs the beat-note measurement of the chain"
+        )
     best = fit_beat_note(config.transfer_function, variant=variant, free=free)
     a = best.params.a_r
     if "a_r" not in free or config.ringdowns is None or abs(1 + 2 * a) < 1e-3:
@@ -72,8 +77,16 @@ def beat_note_fit(config, variant: str = "causal", free=BEAT_FREE, window: str =
     def ringdown_chi2(fit):
         # a mode that cannot even fit the ring-downs (tau collapsing, singular) loses outright
         try:
-            f = fit_transients(rd.time_s, rd.signal_v[idx], np.tile(t_cuts, idx.size), "tf-crds", fit.params,
-                               window, noise_v=noise, rows_of=rows)
+            f = fit_transients(
+                rd.time_s,
+                rd.signal_v[idx],
+                np.tile(t_cuts, idx.size),
+                "tf-crds",
+                fit.params,
+                window,
+                noise_v=noise,
+                rows_of=rows,
+            )
         except (np.linalg.LinAlgError, ValueError, FloatingPointError):
             return np.inf
         return float(np.sum(f.chi2)) if np.all(f.converged) else np.inf
@@ -90,15 +103,29 @@ def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np
     good = np.nonzero(~np.asarray(ringdowns.clipped))[0]
     if good.size == 0:
         raise AnalysisError("every transient is clipped: nothing to refine H on")
-    fits = fit_transients(ringdowns.time_s, ringdowns.signal_v[good], np.full(good.size, t_cut_s), "crds",
-                          noise_v=None if ringdowns.noise_v is None else np.asarray(ringdowns.noise_v)[good])
+    fits = fit_transients(
+        ringdowns.time_s,
+        ringdowns.signal_v[good],
+        np.full(good.size, t_cut_s),
+        "crds",
+        noise_v=None if ringdowns.noise_v is None else np.asarray(ringdowns.noise_v)[good],
+    )
     order = np.argsort(fits.tau_s)
-    pick = order[np.unique(np.round(np.linspace(0, order.size - 1, min(n, order.size))).astype(int))]
+    pick = order[
+        np.unique(np.round(np.linspace(0, order.size - 1, min(n, order.size))).astype(int))
+    ]
     return good[np.sort(pick)]
 
 
-def calibrate(config, t_cuts_s=DEFAULT_T_CUTS, window: str = "extinction", refine: bool = True,
-              free=REFINE_FREE, variant: str = "causal", n_points: int = 6) -> Calibration:
+def calibrate(
+    config,
+    t_cuts_s=DEFAULT_T_CUTS,
+    window: str = "extinction",
+    refine: bool = True,
+    free=REFINE_FREE,
+    variant: str = "causal",
+    n_points: int = 6,
+) -> Calibration:
     """Beat-note fit, then (with ``refine``) the multi-ring-down refinement of ``free``."""
     beat = beat_note_fit(config, variant=variant, window=window)
     if not refine:
@@ -108,18 +135,38 @@ def calibrate(config, t_cuts_s=DEFAULT_T_CUTS, window: str = "extinction", refin
     t_cuts = np.asarray(t_cuts_s, float)
     rows = np.repeat(np.arange(idx.size), t_cuts.size)
     noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
-    refined = refine_transfer_function(rd.time_s, rd.signal_v[idx], np.tile(t_cuts, idx.size), beat.params,
-                                       free=free, window=window, noise_v=noise, rows_of=rows)
+    refined = refine_transfer_function(
+        rd.time_s,
+        rd.signal_v[idx],
+        np.tile(t_cuts, idx.size),
+        beat.params,
+        free=free,
+        window=window,
+        noise_v=noise,
+        rows_of=rows,
+    )
     return Calibration(beat=beat, refined=refined)
 
 
-def fit_config(config, t_cuts_s, method: str = "tf-crds", window: str = "extinction",
-               calibration: Calibration | None = None, keep_residuals: bool = False) -> RingdownFits:
+def fit_config(
+    config,
+    t_cuts_s,
+    method: str = "tf-crds",
+    window: str = "extinction",
+    calibration: Calibration | None = None,
+    keep_residuals: bool = False,
+) -> RingdownFits:
     """Fit every transient of ``config`` at every t_cut (s) with CRDS or TF-CRDS."""
     tf = None
     if method == "tf-crds":
         if calibration is None:
             calibration = calibrate(config, window=window)
         tf = calibration.params
-    return fit_ringdowns(config.ringdowns, t_cuts_s, method=method, tf=tf, window=window,
-                         keep_residuals=keep_residuals)
+    return fit_ringdowns(
+        config.ringdowns,
+        t_cuts_s,
+        method=method,
+        tf=tf,
+        window=window,
+        keep_residuals=keep_residuals,
+    )

@@ -1,4 +1,4 @@
-"""Spectra from decay times and mode shifts, and line-shape fits with the line area as a parameter.
+"""Line-shape fits to spectra, with the line area as a parameter.
 
 * CRDS: ``1/(c tau) = alpha(nu) + alpha_loss``; the empty-cavity loss is a fitted baseline
   (constant, optionally sloped), so decay times go in directly.
@@ -10,6 +10,7 @@ position and shape parameters, so its uncertainty and correlations come from the
 The Doppler width is fixed by T and the molecular mass (it is known better than the fit
 could determine it); shape parameters a profile does not use are absent.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -20,8 +21,6 @@ from scipy import optimize
 from bayes_tfcrds.core.constants import C, line_area_to_cm2
 from bayes_tfcrds.core.linalg import central_jacobian, covariance_from_fisher
 from bayes_tfcrds.physics.lineshape import PROFILES, profile
-
-
 
 # shape parameters fitted by default per profile (delta0 is absorbed in the position)
 DEFAULT_SHAPE_FREE = {
@@ -120,7 +119,7 @@ class LineModel:
     @property
     def names(self) -> tuple:
         names = ["line_area", "position_offset_hz", *self.shape_free]
-        for i, (kind, slope) in enumerate(zip(self.kinds, self.slopes)):
+        for i, slope in enumerate(self.slopes):
             names.append(f"baseline{i}")
             if slope:
                 names.append(f"slope{i}")
@@ -128,7 +127,7 @@ class LineModel:
 
     def shape(self, theta) -> dict:
         p = dict(self.fixed)
-        for name, v in zip(self.shape_free, theta[2:2 + len(self.shape_free)]):
+        for name, v in zip(self.shape_free, theta[2 : 2 + len(self.shape_free)]):
             p[name] = v
         return p
 
@@ -137,8 +136,16 @@ class LineModel:
         area, pos = theta[0], theta[1]
         # work in detuning from nu_ref: absolute optical frequencies (~2e14 Hz) resolve only
         # ~0.03 Hz in float64, which would swallow the position's finite-difference steps
-        g_all = [profile(self.profile, s.nu_hz - self.nu_ref_hz, pos, self.doppler_hwhm_hz, **self.shape(theta))
-                 for s in spectra]
+        g_all = [
+            profile(
+                self.profile,
+                s.nu_hz - self.nu_ref_hz,
+                pos,
+                self.doppler_hwhm_hz,
+                **self.shape(theta),
+            )
+            for s in spectra
+        ]
         out = []
         k = 2 + len(self.shape_free)
         for s, g, slope in zip(spectra, g_all, self.slopes):
@@ -172,13 +179,19 @@ def _initial(spectra, model: LineModel, start: dict):
     theta.append(start.get("line_area", area0))
     theta.append(start.get("position_offset_hz", 0.0))
     for name in model.shape_free:
-        default = {"gamma0_hz": 0.05 * model.doppler_hwhm_hz, "gamma2_hz": 0.01 * model.doppler_hwhm_hz,
-                   "nu_vc_hz": 0.01 * model.doppler_hwhm_hz, "delta2_hz": 0.0}[name]
+        default = {
+            "gamma0_hz": 0.05 * model.doppler_hwhm_hz,
+            "gamma2_hz": 0.01 * model.doppler_hwhm_hz,
+            "nu_vc_hz": 0.01 * model.doppler_hwhm_hz,
+            "delta2_hz": 0.0,
+        }[name]
         theta.append(start.get(name, default))
     for i, (s, slope) in enumerate(zip(spectra, model.slopes)):
         if s.kind == "absorption":
             o = np.argsort(s.nu_hz)
-            theta.append(start.get(f"baseline{i}", np.median(np.concatenate([s.y[o][:5], s.y[o][-5:]]))))
+            theta.append(
+                start.get(f"baseline{i}", np.median(np.concatenate([s.y[o][:5], s.y[o][-5:]])))
+            )
         else:
             theta.append(start.get(f"baseline{i}", 0.0))
         if slope:
@@ -186,9 +199,18 @@ def _initial(spectra, model: LineModel, start: dict):
     return np.array(theta, float)
 
 
-def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = None, nu_ref_hz: float = None,
-             shape_free=None, fixed: dict | None = None, slopes=None, start: dict | None = None,
-             scale_by_chi2: bool = False, physical_bounds: bool = False) -> LineFit:
+def fit_line(
+    spectra,
+    profile_name: str = "qsdhcp",
+    doppler_hwhm_hz: float = None,
+    nu_ref_hz: float = None,
+    shape_free=None,
+    fixed: dict | None = None,
+    slopes=None,
+    start: dict | None = None,
+    scale_by_chi2: bool = False,
+    physical_bounds: bool = False,
+) -> LineFit:
     """Least-squares fit of one line to one or more spectra (CRDS absorption, CMDS dispersion).
 
     ``doppler_hwhm_hz`` (Hz) is held fixed; ``nu_ref_hz`` (Hz) is the nominal position (the fit
@@ -210,9 +232,15 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
         if name in shape_free:
             fixed.pop(name)
     slopes = tuple(s.kind == "dispersion" for s in spectra) if slopes is None else tuple(slopes)
-    model = LineModel(profile=profile_name, shape_free=shape_free, kinds=tuple(s.kind for s in spectra),
-                      slopes=slopes, nu_ref_hz=float(nu_ref_hz), doppler_hwhm_hz=float(doppler_hwhm_hz),
-                      fixed=fixed)
+    model = LineModel(
+        profile=profile_name,
+        shape_free=shape_free,
+        kinds=tuple(s.kind for s in spectra),
+        slopes=slopes,
+        nu_ref_hz=float(nu_ref_hz),
+        doppler_hwhm_hz=float(doppler_hwhm_hz),
+        fixed=fixed,
+    )
     names = model.names
     y = np.concatenate([s.y for s in spectra])
     u = np.concatenate([s.u for s in spectra])
@@ -222,24 +250,40 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
     bounded = NONNEGATIVE | (set(PHYSICAL_NONNEGATIVE) if physical_bounds else set())
     lo = np.array([0.0 if n in bounded else -np.inf for n in names])
     theta0 = np.maximum(theta0, lo + 1e-300 * (lo == 0))
-    scale = np.abs(theta0) + np.array([1e-3 * doppler_hwhm_hz if n == "position_offset_hz" else 0.0
-                                       for n in names])
+    scale = np.abs(theta0) + np.array(
+        [1e-3 * doppler_hwhm_hz if n == "position_offset_hz" else 0.0 for n in names]
+    )
     scale = np.where(scale > 0, scale, 1.0)
 
     def resid(x):
         return (np.concatenate(model.predict(x * scale, spectra)) - y) / u
 
-    sol = optimize.least_squares(resid, theta0 / scale, bounds=(lo / scale, np.full(len(names), np.inf)),
-                                 x_scale="jac", xtol=1e-13, ftol=1e-13, gtol=1e-13, max_nfev=5000)
+    sol = optimize.least_squares(
+        resid,
+        theta0 / scale,
+        bounds=(lo / scale, np.full(len(names), np.inf)),
+        x_scale="jac",
+        xtol=1e-13,
+        ftol=1e-13,
+        gtol=1e-13,
+        max_nfev=5000,
+    )
     theta = sol.x * scale
     steps = 1e-6 * np.maximum(np.abs(theta), 1e-3 * scale)
-    jac = central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), theta, steps) / u[:, None]
+    jac = (
+        central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), theta, steps)
+        / u[:, None]
+    )
     r = resid(sol.x)
     chi2 = float(r @ r)
     # parameters pinned at their lower bound (e.g. Gamma2 = 0 when the data cannot resolve
     # speed dependence) are held fixed in the covariance: treating them as free would state
     # the uncertainty of an estimator the fit did not use (the active set of the solution)
-    at_bound = tuple(n for n, v, l in zip(names, theta, lo) if l == 0.0 and v <= 1e-9 * max(scale[names.index(n)], 1e-300))
+    at_bound = tuple(
+        n
+        for n, v, low in zip(names, theta, lo)
+        if low == 0.0 and v <= 1e-9 * max(scale[names.index(n)], 1e-300)
+    )
     free_idx = [i for i, n in enumerate(names) if n not in at_bound]
     dof = y.size - len(free_idx)
     cov = np.zeros((theta.size, theta.size))
@@ -248,10 +292,19 @@ def fit_line(spectra, profile_name: str = "qsdhcp", doppler_hwhm_hz: float = Non
     if scale_by_chi2:
         cov = cov * chi2 / max(dof, 1)
     split = np.cumsum([s.y.size for s in spectra])[:-1]
-    return LineFit(profile=profile_name, names=names, values=theta, cov=cov, chi2=chi2, dof=dof,
-                   nu_ref_hz=float(nu_ref_hz), doppler_hwhm_hz=float(doppler_hwhm_hz), fixed=fixed,
-                   spectra=spectra, residuals=tuple(np.split(r * u, split)), scaled=scale_by_chi2,
-                   at_bound=at_bound,
-                   unphysical=tuple(n for n, v in zip(names, theta) if n in PHYSICAL_NONNEGATIVE and v < 0))
-
-
+    return LineFit(
+        profile=profile_name,
+        names=names,
+        values=theta,
+        cov=cov,
+        chi2=chi2,
+        dof=dof,
+        nu_ref_hz=float(nu_ref_hz),
+        doppler_hwhm_hz=float(doppler_hwhm_hz),
+        fixed=fixed,
+        spectra=spectra,
+        residuals=tuple(np.split(r * u, split)),
+        scaled=scale_by_chi2,
+        at_bound=at_bound,
+        unphysical=tuple(n for n, v in zip(names, theta) if n in PHYSICAL_NONNEGATIVE and v < 0),
+    )

@@ -3,20 +3,24 @@
 The result is a :class:`LineAnalysis`; its ``to_dict()`` is the JSON record, with spectroscopic
 units at that edge, each labelled.
 """
+
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
-from bayes_tfcrds.core.constants import intensity_to_cm_per_molecule, line_area_to_cm2, number_density
-from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
-from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, fit_line
-from dataclasses import dataclass
-
+from bayes_tfcrds.core.constants import (
+    intensity_to_cm_per_molecule,
+    line_area_to_cm2,
+    number_density,
+)
 from bayes_tfcrds.core.gum import ratio
 from bayes_tfcrds.core.quantity import Quantity
-from bayes_tfcrds.fit.line import LineFit
+from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
 from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
+from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
 
 
 class LineFitError(ValueError):
@@ -26,18 +30,28 @@ class LineFitError(ValueError):
 def doppler_of(sample) -> float:
     """Doppler HWHM (Hz) from the bundle's sample: T and the absorber mass."""
     if sample.mass_u is None:
-        raise LineFitError("/sample@mass_u is absent: the Doppler width needs the absorber's mass (u)")
+        raise LineFitError(
+            "/sample@mass_u is absent: the Doppler width needs the absorber's mass (u)"
+        )
     return float(doppler_hwhm_hz(sample.nu0_hz, sample.temperature_k, sample.mass_u))
 
 
 def _area_entry(value_si, u_si):
-    return {"value": float(line_area_to_cm2(value_si)), "u": float(line_area_to_cm2(u_si)), "unit": "cm^-2",
-            "value_si": float(value_si), "u_si": float(u_si), "unit_si": "Hz/m"}
+    return {
+        "value": float(line_area_to_cm2(value_si)),
+        "u": float(line_area_to_cm2(u_si)),
+        "unit": "cm^-2",
+        "value_si": float(value_si),
+        "u_si": float(u_si),
+        "unit_si": "Hz/m",
+    }
 
 
 def check_overlap(config):
-    """Refuse a CMDS reference that does not cover the ring-down spectrum's frequency range:
-    comparing areas of two spectra of different stretches of the line would mean nothing."""
+    """Refuse a CMDS reference that does not cover the ring-down spectrum's frequency range.
+
+    Comparing areas of two spectra of different stretches of the line would mean nothing.
+    """
     if config.cmds is None:
         return
     rd_lo, rd_hi = np.min(config.ringdowns.nu_hz), np.max(config.ringdowns.nu_hz)
@@ -45,29 +59,40 @@ def check_overlap(config):
     inside = np.sum((config.cmds.nu_hz >= rd_lo) & (config.cmds.nu_hz <= rd_hi))
     if cm_hi < rd_lo or cm_lo > rd_hi or inside < 8:
         raise LineFitError(
-            f"/configs/{config.name}/cmds/nu_hz spans {cm_lo / 1e12:.6f}-{cm_hi / 1e12:.6f} THz and does not overlap "
-            f"the ring-down range /configs/{config.name}/ringdowns/nu_hz {rd_lo / 1e12:.6f}-{rd_hi / 1e12:.6f} THz "
-            f"({inside} CMDS points inside it; at least 8 needed)")
+            f"/configs/{config.name}/cmds/nu_hz spans {cm_lo / 1e12:.6f}-{cm_hi / 1e12:.6f} THz "
+            f"and does not overlap the ring-down range /configs/{config.name}/ringdowns/nu_hz "
+            f"{rd_lo / 1e12:.6f}-{rd_hi / 1e12:.6f} THz ({inside} CMDS points inside it; at least "
+            "8 needed)"
+        )
 
 
 def check_t_cuts(config, t_cuts_s):
-    """Refuse truncation times (s, from laser extinction) outside the ring-down record before any
-    work is done: a fit needs t_cut >= 0 and some samples after it (8, as ringdown.fit_transients)."""
+    """Refuse truncation times outside the ring-down record before any work is done.
+
+    t_cut is in s from laser extinction; a fit needs t_cut >= 0 and some samples after it (8, as
+    ringdown.fit_transients).
+    """
     t = config.ringdowns.time_s
     last, dt = float(t[-1]), float(t[1] - t[0]) if t.size > 1 else 0.0
     for tc in np.atleast_1d(np.asarray(t_cuts_s, float)):
         if not np.isfinite(tc) or tc < 0:
-            raise LineFitError(f"t_cut = {tc:g} s: t_cut is counted from laser extinction and must be >= 0 s")
+            raise LineFitError(
+                f"t_cut = {tc:g} s: t_cut is counted from laser extinction and must be >= 0 s"
+            )
         if tc >= last - 8 * dt:
-            raise LineFitError(f"t_cut = {tc:g} s is beyond the record of /configs/{config.name}/ringdowns "
-                               f"(last sample at {last:g} s; a fit needs samples after t_cut)")
+            raise LineFitError(
+                f"t_cut = {tc:g} s is beyond the record of /configs/{config.name}/ringdowns (last "
+                f"sample at {last:g} s; a fit needs samples after t_cut)"
+            )
 
 
 def fit_reference(bundle, config, profile_name: str = "qsdhcp"):
     """Profile fit to the configuration's CMDS mode shifts (the reference A_ref), or None."""
     if config.cmds is None:
         return None
-    return fit_line([cmds_spectrum(config.cmds)], profile_name, doppler_of(bundle.sample), bundle.sample.nu0_hz)
+    return fit_line(
+        [cmds_spectrum(config.cmds)], profile_name, doppler_of(bundle.sample), bundle.sample.nu0_hz
+    )
 
 
 @dataclass(frozen=True)
@@ -96,8 +121,11 @@ class LineAnalysis:
     @property
     def line_area(self) -> Quantity:
         """A (cm^-2) with its fit uncertainty."""
-        return Quantity(float(line_area_to_cm2(self.line_fit.line_area)),
-                        float(line_area_to_cm2(self.line_fit.line_area_u)), "cm^-2")
+        return Quantity(
+            float(line_area_to_cm2(self.line_fit.line_area)),
+            float(line_area_to_cm2(self.line_fit.line_area_u)),
+            "cm^-2",
+        )
 
     @property
     def reference_area(self) -> Quantity | None:
@@ -105,7 +133,11 @@ class LineAnalysis:
         ref = self.reference_fit
         if ref is None:
             return None
-        return Quantity(float(line_area_to_cm2(ref.line_area)), float(line_area_to_cm2(ref.line_area_u)), "cm^-2")
+        return Quantity(
+            float(line_area_to_cm2(ref.line_area)),
+            float(line_area_to_cm2(ref.line_area_u)),
+            "cm^-2",
+        )
 
     @property
     def ratio(self) -> Quantity | None:
@@ -113,7 +145,9 @@ class LineAnalysis:
         ref = self.reference_fit
         if ref is None:
             return None
-        r, u = ratio(self.line_fit.line_area, self.line_fit.line_area_u, ref.line_area, ref.line_area_u)
+        r, u = ratio(
+            self.line_fit.line_area, self.line_fit.line_area_u, ref.line_area, ref.line_area_u
+        )
         return Quantity(float(r), float(u), "")
 
     @property
@@ -141,12 +175,19 @@ class LineAnalysis:
             "t_cut_s": float(self.t_cut_s),
             "profile": self.profile,
             "line_area": _area_entry(lf.line_area, lf.line_area_u),
-            "intensity": {"value": float(intensity_to_cm_per_molecule(lf.line_area, n)),
-                          "u_fit_only": float(intensity_to_cm_per_molecule(lf.line_area_u, n)),
-                          "unit": "cm/molecule"},
-            "parameters": {name: {"value": float(v), "u": float(np.sqrt(lf.cov[i, i]))}
-                           for i, (name, v) in enumerate(zip(lf.names, lf.values))},
-            "correlation": {"names": list(lf.names), "matrix": np.round(lf.correlation, 6).tolist()},
+            "intensity": {
+                "value": float(intensity_to_cm_per_molecule(lf.line_area, n)),
+                "u_fit_only": float(intensity_to_cm_per_molecule(lf.line_area_u, n)),
+                "unit": "cm/molecule",
+            },
+            "parameters": {
+                name: {"value": float(v), "u": float(np.sqrt(lf.cov[i, i]))}
+                for i, (name, v) in enumerate(zip(lf.names, lf.values))
+            },
+            "correlation": {
+                "names": list(lf.names),
+                "matrix": np.round(lf.correlation, 6).tolist(),
+            },
             "chi2_red": self.chi2_red,
             "unphysical_shape": self.unphysical_shape,
             "shape_at_bound": self.shape_at_bound,
@@ -157,9 +198,15 @@ class LineAnalysis:
         }
         if self.calibration is not None:
             p = self.calibration.params
-            out["transfer_function"] = {"f_c_hz": p.f_c_hz, "a_r": p.a_r, "f_r_hz": p.f_r_hz,
-                                        "gamma_r": p.gamma_r, "n_r": p.n_r, "variant": p.variant,
-                                        "refined": self.calibration.refined is not None}
+            out["transfer_function"] = {
+                "f_c_hz": p.f_c_hz,
+                "a_r": p.a_r,
+                "f_r_hz": p.f_r_hz,
+                "gamma_r": p.gamma_r,
+                "n_r": p.n_r,
+                "variant": p.variant,
+                "refined": self.calibration.refined is not None,
+            }
         if ref is None:
             out["reference_area"] = None
             out["ratio"] = None
@@ -171,8 +218,16 @@ class LineAnalysis:
         return out
 
 
-def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinction", t_cut_s: float = 4e-6,
-                 profile_name: str = "qsdhcp", calibration=None, physical_bounds: bool = False) -> LineAnalysis:
+def analyse_line(
+    bundle,
+    config,
+    method: str = "tf-crds",
+    window: str = "extinction",
+    t_cut_s: float = 4e-6,
+    profile_name: str = "qsdhcp",
+    calibration=None,
+    physical_bounds: bool = False,
+) -> LineAnalysis:
     """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare.
 
     ``physical_bounds`` keeps Gamma2, nu_VC >= 0 in the CRDS line fit (see ``fit.line.fit_line``).
@@ -191,16 +246,30 @@ def analyse_line(bundle, config, method: str = "tf-crds", window: str = "extinct
     tau = np.where(unconverged, np.nan, fits.tau_s[:, 0])
     spec = crds_spectrum(fits.nu_hz, tau, fits.tau_u_s[:, 0])
     if spec.nu_hz.size < 8:
-        raise LineFitError(f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}")
+        raise LineFitError(
+            f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}"
+        )
     lf = fit_line([spec], profile_name, gd, bundle.sample.nu0_hz, physical_bounds=physical_bounds)
     sample = bundle.sample
     return LineAnalysis(
-        configuration=config.name, method=method, window=window if method == "tf-crds" else None,
-        t_cut_s=float(t_cut_s), profile=profile_name, line_fit=lf,
-        reference_fit=fit_reference(bundle, config, profile_name), spectrum=spec,
-        number_density_m3=number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction),
-        n_points=int(spec.nu_hz.size), clipped_points=int(np.sum(fits.clipped)),
+        configuration=config.name,
+        method=method,
+        window=window if method == "tf-crds" else None,
+        t_cut_s=float(t_cut_s),
+        profile=profile_name,
+        line_fit=lf,
+        reference_fit=fit_reference(bundle, config, profile_name),
+        spectrum=spec,
+        number_density_m3=number_density(
+            sample.pressure_pa, sample.temperature_k, sample.mole_fraction
+        ),
+        n_points=int(spec.nu_hz.size),
+        clipped_points=int(np.sum(fits.clipped)),
         unconverged_points=int(np.sum(unconverged)),
-        # decays with less than two decay times of record after t_cut (offset and tau nearly degenerate)
-        record_short_points=int(sum(fits.status(i, 0) == "record-short" for i in range(fits.nu_hz.size))),
-        calibration=calibration)
+        # decays with less than two decay times of record after t_cut (offset and tau nearly
+        # degenerate)
+        record_short_points=int(
+            sum(fits.status(i, 0) == "record-short" for i in range(fits.nu_hz.size))
+        ),
+        calibration=calibration,
+    )

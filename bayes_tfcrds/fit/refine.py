@@ -10,6 +10,7 @@ The same record enters once per t_cut, so the rows share noise: the parameter co
 the sandwich A^-1 (sum over records of s_i s_i^T) A^-1 with s_i the record's score summed over
 its truncations, not the naive A^-1 that would count the same noise up to c times.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -17,16 +18,25 @@ from dataclasses import dataclass
 import numpy as np
 
 from bayes_tfcrds.core.linalg import covariance_from_fisher
+from bayes_tfcrds.fit.ringdown import (
+    _dense_sums,
+    _gauss_newton,
+    _solve_linear,
+    _TfCrds,
+    fit_transients,
+    noise_rows,
+)
 from bayes_tfcrds.physics.forward import filtered_response, first_index_at, grid_transfer_function
-from bayes_tfcrds.fit.ringdown import _dense_sums, _gauss_newton, noise_rows, _solve_linear, _TfCrds, fit_transients
 from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, TFParams
 
 
 @dataclass(frozen=True)
 class RefinedTF:
-    """Refined H: ``params``, covariance ``cov`` of ``free`` (natural units), the naive
-    covariance that ignores shared noise (``cov_naive``, for comparison), chi2 and the
-    per-row fits at the optimum."""
+    """Refined H.
+
+    ``params``, covariance ``cov`` of ``free`` (natural units), the naive covariance that ignores
+    shared noise (``cov_naive``, for comparison), chi2 and the per-row fits at the optimum.
+    """
 
     params: TFParams
     start: TFParams
@@ -43,7 +53,7 @@ class RefinedTF:
     sens_names: tuple = ()
     a_full: np.ndarray | None = None
     b_full: np.ndarray | None = None
-    influence: np.ndarray | None = None     # d theta_free / d y: (records, n_free, samples)
+    influence: np.ndarray | None = None  # d theta_free / d y: (records, n_free, samples)
 
     def conditional(self, others: dict):
         """Linear map of the refined parameters on the others held fixed in the refinement.
@@ -73,7 +83,9 @@ class RefinedTF:
 def _evaluate(t, y, wm, t_cut, tf, free, window, tau_start):
     """Re-fit tau per row under ``tf``; return chi2, tau, residuals and reduced Jacobian."""
     model = _TfCrds(t, t_cut, tf, window, wm > 0)
-    tau, conv = _gauss_newton(_dense_sums(model, y, wm), wm.sum(-1), np.einsum("ij,ij->i", wm, y), tau_start)
+    tau, conv = _gauss_newton(
+        _dense_sums(model, y, wm), wm.sum(-1), np.einsum("ij,ij->i", wm, y), tau_start
+    )
     n, k = y.shape
     p = len(free)
     uniq, group = np.unique(t_cut, return_inverse=True)
@@ -87,57 +99,28 @@ def _evaluate(t, y, wm, t_cut, tf, free, window, tau_start):
         w = wm[sel]
         amp, off = _solve_linear(w, g, y[sel])
         resid[sel] = np.where(w > 0, y[sel] - amp[:, None] * g - off[:, None], 0.0)
-        cols = np.stack([g, np.ones_like(g), amp[:, None] * dg], axis=1)        # (n, 3, k)
-        jth = amp[:, None, None] * dgt                                          # (n, p, k)
+        cols = np.stack([g, np.ones_like(g), amp[:, None] * dg], axis=1)  # (n, 3, k)
+        jth = amp[:, None, None] * dgt  # (n, p, k)
         ctc = np.einsum("nak,nbk,nk->nab", cols, cols, w)
         ctj = np.einsum("nak,npk,nk->nap", cols, jth, w)
-        coef = np.linalg.solve(ctc, ctj)                                        # (n, 3, p)
+        coef = np.linalg.solve(ctc, ctj)  # (n, 3, p)
         jred[sel] = jth - np.einsum("nak,nap->npk", cols, coef)
     chi2 = float((wm * resid**2).sum())
     return chi2, tau, conv, resid, jred
 
 
-def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("f_c_hz",),
-                             window: str = "extinction", noise_v=None, rows_of=None,
-                             max_iter: int = 30, rtol: float = 1e-8, sens_names=()) -> RefinedTF:
-    """Refine the ``free`` H parameters jointly over many truncated transients.
+def _levenberg_marquardt(t, y, wm, t_cut, start, free, window, tau, max_iter, rtol):
+    """Damped Gauss-Newton (Levenberg-Marquardt) on the ``free`` H parameters.
 
-    ``time_s`` (k,) s; ``signal_v`` (m, k) V; ``t_cut_s`` (n,) s and ``rows_of`` (n,) as in
-    :func:`bayes_tfcrds.ringdown.fit_transients`; ``noise_v`` None, (m,) or (m, k) V (when None,
-    each record's noise is estimated from a first TF-CRDS fit and then held fixed).
-    ``start`` is usually the beat-note fit.
+    tau is re-fitted per row at every trial. Returns (H, chi2, tau, converged per row, reduced
+    Jacobian, iterations, converged).
     """
-    free = tuple(free)
-    for name in free:
-        if name not in PARAM_NAMES:
-            raise ValueError(f"unknown transfer-function parameter {name!r}; choose from {PARAM_NAMES}")
-    t = np.asarray(time_s, float)
-    sig = np.asarray(signal_v, float)
-    t_cut = np.atleast_1d(np.asarray(t_cut_s, float))
-    rows_of = np.arange(t_cut.size) if rows_of is None else np.asarray(rows_of)
-    first = fit_transients(t, sig, t_cut, method="tf-crds", tf=start, window=window, noise_v=noise_v,
-                           rows_of=rows_of)
-    if noise_v is None:
-        # one noise level per record: the mean over its truncations of the residual RMS
-        rec = np.zeros(sig.shape[0])
-        cnt = np.zeros(sig.shape[0])
-        np.add.at(rec, rows_of, first.noise_v**2)
-        np.add.at(cnt, rows_of, 1)
-        noise_v = np.sqrt(rec / np.maximum(cnt, 1))
-    n, k = t_cut.size, t.size
-    y = sig[rows_of]
-    firsts = np.array([first_index_at(t[0], t[1] - t[0], tc) for tc in t_cut])
-    mask = np.arange(k)[None, :] >= firsts[:, None]
-    noise = noise_rows(noise_v, n, k, rows_of)
-    wm = mask / noise**2
-
     tf = start
-    tau = first.tau_s
     chi2, tau, conv, resid, jred = _evaluate(t, y, wm, t_cut, tf, free, window, tau)
     lam = 1e-3
     converged = False
     it = 0
-    for it in range(1, max_iter + 1):
+    for it in range(1, max_iter + 1):  # noqa: B007 - the count is returned
         a = np.einsum("npk,nqk,nk->pq", jred, jred, wm)
         grad = np.einsum("npk,nk,nk->p", jred, wm, resid)
         scale = np.sqrt(np.diag(a))
@@ -163,6 +146,60 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
         if not accepted or rel < rtol:
             converged = accepted or rel < 1e-6
             break
+
+    return tf, chi2, tau, conv, jred, it, converged
+
+
+def refine_transfer_function(
+    time_s,
+    signal_v,
+    t_cut_s,
+    start: TFParams,
+    free=("f_c_hz",),
+    window: str = "extinction",
+    noise_v=None,
+    rows_of=None,
+    max_iter: int = 30,
+    rtol: float = 1e-8,
+    sens_names=(),
+) -> RefinedTF:
+    """Refine the ``free`` H parameters jointly over many truncated transients.
+
+    ``time_s`` (k,) s; ``signal_v`` (m, k) V; ``t_cut_s`` (n,) s and ``rows_of`` (n,) as in
+    :func:`bayes_tfcrds.fit.ringdown.fit_transients`; ``noise_v`` None, (m,) or (m, k) V (when None,
+    each record's noise is estimated from a first TF-CRDS fit and then held fixed).
+    ``start`` is usually the beat-note fit.
+    """
+    free = tuple(free)
+    for name in free:
+        if name not in PARAM_NAMES:
+            raise ValueError(
+                f"unknown transfer-function parameter {name!r}; choose from {PARAM_NAMES}"
+            )
+    t = np.asarray(time_s, float)
+    sig = np.asarray(signal_v, float)
+    t_cut = np.atleast_1d(np.asarray(t_cut_s, float))
+    rows_of = np.arange(t_cut.size) if rows_of is None else np.asarray(rows_of)
+    first = fit_transients(
+        t, sig, t_cut, method="tf-crds", tf=start, window=window, noise_v=noise_v, rows_of=rows_of
+    )
+    if noise_v is None:
+        # one noise level per record: the mean over its truncations of the residual RMS
+        rec = np.zeros(sig.shape[0])
+        cnt = np.zeros(sig.shape[0])
+        np.add.at(rec, rows_of, first.noise_v**2)
+        np.add.at(cnt, rows_of, 1)
+        noise_v = np.sqrt(rec / np.maximum(cnt, 1))
+    n, k = t_cut.size, t.size
+    y = sig[rows_of]
+    firsts = np.array([first_index_at(t[0], t[1] - t[0], tc) for tc in t_cut])
+    mask = np.arange(k)[None, :] >= firsts[:, None]
+    noise = noise_rows(noise_v, n, k, rows_of)
+    wm = mask / noise**2
+
+    tf, chi2, tau, conv, jred, it, converged = _levenberg_marquardt(
+        t, y, wm, t_cut, start, free, window, first.tau_s, max_iter, rtol
+    )
 
     m = sig.shape[0]
     var = noise_rows(noise_v, m, k, np.arange(m)) ** 2
@@ -191,7 +228,21 @@ def refine_transfer_function(time_s, signal_v, t_cut_s, start: TFParams, free=("
     else:
         a_full, b_full = a, b
     dof = int(mask.sum() - 3 * n - len(free))
-    return RefinedTF(params=tf, start=start, free=free, cov=cov, cov_naive=a_inv, chi2=chi2, dof=dof,
-                     n_iter=it, converged=bool(converged and conv.all()), tau_s=tau, t_cut_s=t_cut,
-                     rows_of=rows_of, sens_names=sens_names, a_full=a_full, b_full=b_full,
-                     influence=influence)
+    return RefinedTF(
+        params=tf,
+        start=start,
+        free=free,
+        cov=cov,
+        cov_naive=a_inv,
+        chi2=chi2,
+        dof=dof,
+        n_iter=it,
+        converged=bool(converged and conv.all()),
+        tau_s=tau,
+        t_cut_s=t_cut,
+        rows_of=rows_of,
+        sens_names=sens_names,
+        a_full=a_full,
+        b_full=b_full,
+        influence=influence,
+    )

@@ -7,24 +7,31 @@ damped Gauss-Newton step on tau; the TF-CRDS fit starts from the CRDS solution.
 
 The step needs only weighted sums of g, dg/dtau and the data. With one noise level per
 transient, plain CRDS and TF-CRDS with a rational H (Eq. 2 with n_r = 2) in the extinction
-window get them in closed form from ``expsum.py`` (g never formed, no FFT); otherwise (per-sample
-noise, the letter window, fractional n_r) g comes from the FFT model of ``forward.py``.
+window get them in closed form from ``physics/expsum.py`` (g never formed, no FFT); otherwise
+(per-sample noise, the letter window, fractional n_r) g comes from the FFT model of
+``physics/forward.py``.
 
 Units: time and tau in s, signals and noise in V.
 """
+
 from __future__ import annotations
 
 import csv
 import io
-
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from bayes_tfcrds.core.linalg import covariance_from_fisher
-from bayes_tfcrds.physics.forward import WINDOWS, filtered_response, first_index_at, grid_transfer_function, model_grids
 from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.physics.expsum import BlockedData, SumsModel
+from bayes_tfcrds.physics.forward import (
+    WINDOWS,
+    filtered_response,
+    first_index_at,
+    grid_transfer_function,
+    model_grids,
+)
 from bayes_tfcrds.physics.transfer_function import TFParams
 
 METHODS = ("crds", "tf-crds")
@@ -74,8 +81,10 @@ def _solve_linear(wm, g, y):
 
 
 def _three_interval_tau(t, sig, first, rows_of):
-    """Model-free starting tau: for y = b + B exp(-t/tau), sums over three equal consecutive
-    intervals after each row's first sample satisfy (S2 - S3)/(S1 - S2) = exp(-D/tau).
+    """Model-free starting tau.
+
+    For y = b + B exp(-t/tau), sums over three equal consecutive intervals after each row's first
+    sample satisfy (S2 - S3)/(S1 - S2) = exp(-D/tau).
 
     ``sig`` (m, k) transients, ``first`` (n,) first fitted index of each row, ``rows_of`` (n,).
     One cumulative sum per transient serves all its t_cut rows.
@@ -132,7 +141,9 @@ class _TfCrds:
         grp = self.group[rows]
         for gi in np.unique(grp):
             sel = np.nonzero(grp == gi)[0]
-            out = filtered_response(tau[sel], self.grids[gi], self.h[gi], derivative=derivative, fill=0.0)
+            out = filtered_response(
+                tau[sel], self.grids[gi], self.h[gi], derivative=derivative, fill=0.0
+            )
             if derivative:
                 g[sel], dg[sel] = out
             else:
@@ -146,16 +157,26 @@ class _TfCrds:
 
 
 def _dense_sums(model, y, wm):
-    """The step's weighted sums from a model that forms g and dg/dtau (zero outside the fit range)."""
+    """The step's weighted sums from a model that forms g and dg/dtau (0 outside the fit range)."""
+
     def sums(tau, idx):
         g, dg = model(tau, idx)
         w, yy = wm[idx], y[idx]
         wg, wd = w * g, w * dg
-        return wg.sum(-1), _dot(wg, g), _dot(wg, yy), wd.sum(-1), _dot(wd, g), _dot(wd, yy), _dot(wd, dg)
+        return (
+            wg.sum(-1),
+            _dot(wg, g),
+            _dot(wg, yy),
+            wd.sum(-1),
+            _dot(wd, g),
+            _dot(wd, yy),
+            _dot(wd, dg),
+        )
+
     return sums
 
 
-CHI2_CANCEL = 1e-9          # chi2 / y'Wy below which the closed-form chi2 is recomputed from residuals
+CHI2_CANCEL = 1e-9  # chi2 / y'Wy below which the closed-form chi2 is recomputed from residuals
 
 
 def _gauss_newton(sums, s1_all, sy_all, tau0, max_iter=50, rtol=1e-9):
@@ -186,7 +207,9 @@ def _gauss_newton(sums, s1_all, sy_all, tau0, max_iter=50, rtol=1e-9):
         pb = (sgg * sd - sg * sdg) / det
         den = amp * amp * (sdd - pa * sdg - pb * sd)
         ok = np.isfinite(num) & np.isfinite(den) & (den > 0)
-        step = np.clip(np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx])
+        step = np.clip(
+            np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx]
+        )
         tau[idx] = tau[idx] + step
         done = ok & (np.abs(step) <= rtol * tau[idx])
         converged[idx[done]] = True
@@ -196,8 +219,11 @@ def _gauss_newton(sums, s1_all, sy_all, tau0, max_iter=50, rtol=1e-9):
 
 
 def noise_rows(noise_v, n_rows, n_samples, rows_of):
-    """The noise (V) of each fitted row: per record or per sample, picked by ``rows_of``; None when
-    the bundle has no noise (then it is estimated from the residuals)."""
+    """The noise (V) of each fitted row.
+
+    Per record or per sample, picked by ``rows_of``; None when the bundle has no noise (then it is
+    estimated from the residuals).
+    """
     if noise_v is None:
         return None
     nz = np.asarray(noise_v, float)
@@ -206,9 +232,18 @@ def noise_rows(noise_v, n_rows, n_samples, rows_of):
     return nz[rows_of]
 
 
-def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None = None,
-                   window: str | None = "extinction", noise_v=None, rows_of=None,
-                   keep_residuals: bool = False, tau_start_s=None) -> TransientFits:
+def fit_transients(
+    time_s,
+    signal_v,
+    t_cut_s,
+    method="crds",
+    tf: TFParams | None = None,
+    window: str | None = "extinction",
+    noise_v=None,
+    rows_of=None,
+    keep_residuals: bool = False,
+    tau_start_s=None,
+) -> TransientFits:
     """Fit transients; each row r fits ``signal_v[rows_of[r]]`` on t >= ``t_cut_s[r]``.
 
     ``time_s`` (k,) uniformly spaced (s, relative to extinction); ``signal_v`` (m, k) V;
@@ -216,19 +251,25 @@ def fit_transients(time_s, signal_v, t_cut_s, method="crds", tf: TFParams | None
     each row (default: row r fits transient r). ``method`` is ``crds`` or ``tf-crds`` (the latter
     needs ``tf`` and a ``window``).
     """
-    t, sig, t_cut, rows_of, first = _checked_rows(time_s, signal_v, t_cut_s, method, tf, window, rows_of)
+    t, sig, t_cut, rows_of, first = _checked_rows(
+        time_s, signal_v, t_cut_s, method, tf, window, rows_of
+    )
     noise = None if noise_v is None else np.asarray(noise_v, float)
     if noise is None or noise.ndim == 1:
         # one weight per transient: the exponential-sum path, no dense model arrays
-        return _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals,
-                                       tau_start_s)
-    return _fit_per_sample_noise(t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals,
-                                 tau_start_s)
+        return _fit_one_weight_per_row(
+            t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals, tau_start_s
+        )
+    return _fit_per_sample_noise(
+        t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals, tau_start_s
+    )
 
 
 def _checked_rows(time_s, signal_v, t_cut_s, method, tf, window, rows_of):
-    """Arrays of a batch of fits, refused with a clear message where they cannot be fitted; returns
-    (t, signal, t_cut, rows_of, index of each row's first fitted sample)."""
+    """Arrays of a batch of fits, refused with a clear message where they cannot be fitted.
+
+    Returns (t, signal, t_cut, rows_of, index of each row's first fitted sample).
+    """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     t = np.asarray(time_s, float)
@@ -243,15 +284,21 @@ def _checked_rows(time_s, signal_v, t_cut_s, method, tf, window, rows_of):
         raise ValueError("t_cut is counted from laser extinction and must be >= 0 s")
     first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut])
     if method == "tf-crds" and (tf is None or window not in WINDOWS):
-        raise ValueError("tf-crds needs a transfer function and a window "
-                         f"({WINDOWS}), got tf={tf!r}, window={window!r}")
+        raise ValueError(
+            f"tf-crds needs a transfer function and a window ({WINDOWS}), got tf={tf!r}, "
+            f"window={window!r}"
+        )
     return t, sig, t_cut, rows_of, first
 
 
-def _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals,
-                            tau_start_s) -> TransientFits:
-    """One noise level (or none) per transient: weighted sums from ``expsum`` (closed form for CRDS
-    and for a rational H in the extinction window; dense sums otherwise), chi2 without residuals."""
+def _fit_one_weight_per_row(
+    t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals, tau_start_s
+) -> TransientFits:
+    """One noise level (or none) per transient.
+
+    Weighted sums from ``expsum`` (closed form for CRDS and for a rational H in the extinction
+    window; dense sums otherwise), chi2 without residuals.
+    """
     n = t_cut.size
     dt = t[1] - t[0]
     w = np.ones(n) if noise is None else 1.0 / noise[rows_of] ** 2
@@ -259,7 +306,11 @@ def _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, n
     t_first = t[0] + dt * first
     s1 = w * data.n
     model = SumsModel(data, None, t_first, t_cut)
-    tau0 = _three_interval_tau(t, sig, first, rows_of) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
+    tau0 = (
+        _three_interval_tau(t, sig, first, rows_of)
+        if tau_start_s is None
+        else np.asarray(tau_start_s, float).copy()
+    )
     tau, conv = _gauss_newton(model, s1, data.sum_wy, tau0)
     if method == "tf-crds":
         chain = _rational_chain(tf) if window == "extinction" else None
@@ -269,13 +320,16 @@ def _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, n
         else:
             mask = np.arange(t.size)[None, :] >= first[:, None]
             dense = _TfCrds(t, t_cut, tf, window, mask)
-            tau, conv = _gauss_newton(_dense_sums(dense, sig[rows_of], mask * w[:, None]), s1, data.sum_wy, tau)
+            tau, conv = _gauss_newton(
+                _dense_sums(dense, sig[rows_of], mask * w[:, None]), s1, data.sum_wy, tau
+            )
     else:
         window = None
     sg, sgg, sgy, sd, sdg, sdy, sdd = model(tau, np.arange(n))
     det = s1 * sgg - sg * sg
     amp = (s1 * sgy - sg * data.sum_wy) / det
     off = (sgg * data.sum_wy - sg * sgy) / det
+
     # chi2 = y'Wy - beta' X'Wy at the least-squares beta (no residual array needed); it carries
     # an absolute error of a few eps y'Wy, so rows whose chi2 is below CHI2_CANCEL y'Wy
     # (very high signal-to-noise: a relative error above ~1e-6) get it from their residuals
@@ -287,6 +341,7 @@ def _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, n
             g = model.response(t, tau[rows], rows)
         inside = np.arange(t.size)[None, :] >= first[rows, None]
         return np.where(inside, sig[rows_of[rows]] - amp[rows, None] * g - off[rows, None], 0.0)
+
     chi2 = data.sum_wyy - amp * sgy - off * data.sum_wy
     redo = np.nonzero(~(chi2 > CHI2_CANCEL * data.sum_wyy))[0]
     if redo.size:
@@ -295,7 +350,11 @@ def _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, n
     fisher = np.empty((n, 3, 3))
     fisher[:, 0, 0], fisher[:, 0, 1], fisher[:, 1, 1] = sgg, sg, s1
     fisher[:, 0, 2], fisher[:, 1, 2], fisher[:, 2, 2] = amp * sdg, amp * sd, amp * amp * sdd
-    fisher[:, 1, 0], fisher[:, 2, 0], fisher[:, 2, 1] = fisher[:, 0, 1], fisher[:, 0, 2], fisher[:, 1, 2]
+    fisher[:, 1, 0], fisher[:, 2, 0], fisher[:, 2, 1] = (
+        fisher[:, 0, 1],
+        fisher[:, 0, 2],
+        fisher[:, 1, 2],
+    )
     n_used = data.n
     dof = n_used - 3
     resid = None
@@ -310,14 +369,27 @@ def _fit_one_weight_per_row(t, sig, t_cut, rows_of, first, method, tf, window, n
         noise_used = noise[rows_of]
     cov, singular = _row_covariances(fisher)
     conv = conv & ~singular
-    return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
-                         chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=noise is None,
-                         converged=conv, t_cut_s=t_cut, method=method, window=window,
-                         residuals_v=resid)
+    return TransientFits(
+        tau_s=tau,
+        tau_u_s=np.sqrt(cov[:, 2, 2]),
+        amplitude_v=amp,
+        offset_v=off,
+        cov=cov,
+        chi2=chi2,
+        dof=dof,
+        noise_v=noise_used,
+        noise_estimated=noise is None,
+        converged=conv,
+        t_cut_s=t_cut,
+        method=method,
+        window=window,
+        residuals_v=resid,
+    )
 
 
-def _fit_per_sample_noise(t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals,
-                          tau_start_s) -> TransientFits:
+def _fit_per_sample_noise(
+    t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals, tau_start_s
+) -> TransientFits:
     """Per-sample noise: dense model arrays and weights."""
     n = t_cut.size
     y = sig[rows_of]
@@ -326,7 +398,11 @@ def _fit_per_sample_noise(t, sig, t_cut, rows_of, first, method, tf, window, noi
     wm = mask / noise**2
     s1, sy = wm.sum(-1), _dot(wm, y)
     crds = _Crds(t, t_cut, mask)
-    tau0 = _three_interval_tau(t, sig, first, rows_of) if tau_start_s is None else np.asarray(tau_start_s, float).copy()
+    tau0 = (
+        _three_interval_tau(t, sig, first, rows_of)
+        if tau_start_s is None
+        else np.asarray(tau_start_s, float).copy()
+    )
     tau, conv = _gauss_newton(_dense_sums(crds, y, wm), s1, sy, tau0)
     model = crds
     if method == "tf-crds":
@@ -351,15 +427,30 @@ def _fit_per_sample_noise(t, sig, t_cut, rows_of, first, method, tf, window, noi
             fisher[:, i, j] = fisher[:, j, i] = _dot(wc, cols[j])
     cov, singular = _row_covariances(fisher)
     conv = conv & ~singular
-    return TransientFits(tau_s=tau, tau_u_s=np.sqrt(cov[:, 2, 2]), amplitude_v=amp, offset_v=off, cov=cov,
-                         chi2=chi2, dof=dof, noise_v=noise_used, noise_estimated=False,
-                         converged=conv, t_cut_s=t_cut, method=method, window=window,
-                         residuals_v=resid if keep_residuals else None)
+    return TransientFits(
+        tau_s=tau,
+        tau_u_s=np.sqrt(cov[:, 2, 2]),
+        amplitude_v=amp,
+        offset_v=off,
+        cov=cov,
+        chi2=chi2,
+        dof=dof,
+        noise_v=noise_used,
+        noise_estimated=False,
+        converged=conv,
+        t_cut_s=t_cut,
+        method=method,
+        window=window,
+        residuals_v=resid if keep_residuals else None,
+    )
 
 
 def _row_covariances(fisher):
-    """Per-row inverse Fisher matrices; a singular row (a degenerate fit: tau collapsed or no
-    decay left in the window) gets NaN and is reported unconverged instead of failing the batch."""
+    """Per-row inverse Fisher matrices.
+
+    A singular row (a degenerate fit: tau collapsed or no decay left in the window) gets NaN and is
+    reported unconverged instead of failing the batch.
+    """
     try:
         cov = covariance_from_fisher(fisher)
         singular = np.zeros(fisher.shape[0], bool)
@@ -413,7 +504,8 @@ class RingdownFits:
         """``ok``, or why the fit at point i and t_cut j is not to be trusted as it stands.
 
         ``clipped``: the transient hit the digitizer's rails; ``saturated``: the detector pinned
-        it below them (neither is fitted). ``record-short``: less than two decay times of record after t_cut, where the offset b and
+        it below them (neither is fitted). ``record-short``: less than two decay times of record
+        after t_cut, where the offset b and
         tau are nearly degenerate (the fit's u(tau) says so, but a reader should be told).
         """
         if self.saturated is not None and self.saturated[i]:
@@ -430,21 +522,38 @@ class RingdownFits:
         """(nu_hz, t_cut_s, tau_s, tau_u_s, chi2_red, status) per point and t_cut."""
         for i, nu in enumerate(self.nu_hz):
             for j, tc in enumerate(self.t_cut_s):
-                yield nu, tc, self.tau_s[i, j], self.tau_u_s[i, j], self.chi2_red[i, j], self.status(i, j)
+                yield (
+                    nu,
+                    tc,
+                    self.tau_s[i, j],
+                    self.tau_u_s[i, j],
+                    self.chi2_red[i, j],
+                    self.status(i, j),
+                )
 
     def to_csv(self) -> str:
-        """The fit table as CSV text (``bayes-tfcrds fit``): nu_hz, t_cut_s, tau_s, tau_u_s, chi2_red,
-        status; SI units."""
+        """The fit table as CSV text (``bayes-tfcrds fit``).
+
+        nu_hz, t_cut_s, tau_s, tau_u_s, chi2_red, status; SI units.
+        """
         buf = io.StringIO()
         w = csv.writer(buf)
         w.writerow(["nu_hz", "t_cut_s", "tau_s", "tau_u_s", "chi2_red", "status"])
         for nu, tc, tau, tau_u, chi2r, status in self.rows():
-            w.writerow([f"{nu:.3f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status])
+            w.writerow(
+                [f"{nu:.3f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status]
+            )
         return buf.getvalue()
 
 
-def fit_ringdowns(ringdowns, t_cuts_s, method="crds", tf: TFParams | None = None, window="extinction",
-                  keep_residuals: bool = False) -> RingdownFits:
+def fit_ringdowns(
+    ringdowns,
+    t_cuts_s,
+    method="crds",
+    tf: TFParams | None = None,
+    window="extinction",
+    keep_residuals: bool = False,
+) -> RingdownFits:
     """Fit every transient of a bundle's ``RingdownData`` at every t_cut (s).
 
     Clipped transients (``ringdowns.clipped``) are excluded and reported, never fitted as if
@@ -462,18 +571,44 @@ def fit_ringdowns(ringdowns, t_cuts_s, method="crds", tf: TFParams | None = None
     resid = None
     est = ringdowns.noise_v is None
     if good.size:
-        fits = fit_transients(ringdowns.time_s, ringdowns.signal_v, tc, method=method, tf=tf, window=window,
-                              noise_v=ringdowns.noise_v, rows_of=rows_of, keep_residuals=keep_residuals)
-        for key, arr in (("tau", fits.tau_s), ("tau_u", fits.tau_u_s), ("amp", fits.amplitude_v),
-                         ("off", fits.offset_v), ("chi2r", fits.chi2_red)):
+        fits = fit_transients(
+            ringdowns.time_s,
+            ringdowns.signal_v,
+            tc,
+            method=method,
+            tf=tf,
+            window=window,
+            noise_v=ringdowns.noise_v,
+            rows_of=rows_of,
+            keep_residuals=keep_residuals,
+        )
+        for key, arr in (
+            ("tau", fits.tau_s),
+            ("tau_u", fits.tau_u_s),
+            ("amp", fits.amplitude_v),
+            ("off", fits.offset_v),
+            ("chi2r", fits.chi2_red),
+        ):
             out[key][good] = arr.reshape(good.size, c)
         conv[good] = fits.converged.reshape(good.size, c)
         est = fits.noise_estimated
         if keep_residuals:
             resid = np.full((m, c, ringdowns.signal_v.shape[1]), np.nan)
             resid[good] = fits.residuals_v.reshape(good.size, c, -1)
-    return RingdownFits(nu_hz=np.asarray(ringdowns.nu_hz), t_cut_s=t_cuts, tau_s=out["tau"], tau_u_s=out["tau_u"],
-                        amplitude_v=out["amp"], offset_v=out["off"], chi2_red=out["chi2r"], converged=conv,
-                        clipped=clipped, method=method, window=window if method == "tf-crds" else None,
-                        noise_estimated=est, residuals_v=resid, record_end_s=float(ringdowns.time_s[-1]),
-                        saturated=np.asarray(getattr(ringdowns, "saturated", np.zeros(m, bool)), bool))
+    return RingdownFits(
+        nu_hz=np.asarray(ringdowns.nu_hz),
+        t_cut_s=t_cuts,
+        tau_s=out["tau"],
+        tau_u_s=out["tau_u"],
+        amplitude_v=out["amp"],
+        offset_v=out["off"],
+        chi2_red=out["chi2r"],
+        converged=conv,
+        clipped=clipped,
+        method=method,
+        window=window if method == "tf-crds" else None,
+        noise_estimated=est,
+        residuals_v=resid,
+        record_end_s=float(ringdowns.time_s[-1]),
+        saturated=np.asarray(getattr(ringdowns, "saturated", np.zeros(m, bool)), bool),
+    )

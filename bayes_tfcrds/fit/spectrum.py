@@ -2,6 +2,7 @@
 
 Absorption in 1/m from 1/(c tau) or 4 pi Gamma / c; dispersion as mode shifts in Hz.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,9 +29,11 @@ def absorption_from_width(width_hz, width_u_hz=None):
 
 @dataclass(frozen=True)
 class SpectrumData:
-    """One spectrum to fit: ``kind`` is ``absorption`` (y = 1/(c tau) or 4 pi Gamma/c, 1/m) or
-    ``dispersion`` (y = mode shift, Hz); ``nu_hz`` absolute frequencies, ``u`` standard
-    uncertainties in y's unit."""
+    """One spectrum to fit.
+
+    ``kind`` is ``absorption`` (y = 1/(c tau) or 4 pi Gamma/c, 1/m) or ``dispersion`` (y = mode
+    shift, Hz); ``nu_hz`` absolute frequencies, ``u`` standard uncertainties in y's unit.
+    """
 
     kind: str
     nu_hz: np.ndarray
@@ -48,8 +51,13 @@ def crds_spectrum(nu_hz, tau_s, tau_u_s, label="CRDS") -> SpectrumData:
 
 def cmds_spectrum(cmds, label="CMDS") -> SpectrumData:
     """Dispersion spectrum (mode shifts, Hz) from a bundle's CMDS group."""
-    return SpectrumData("dispersion", np.asarray(cmds.nu_hz, float), np.asarray(cmds.shift_hz, float),
-                        np.asarray(cmds.shift_u_hz, float), label)
+    return SpectrumData(
+        "dispersion",
+        np.asarray(cmds.nu_hz, float),
+        np.asarray(cmds.shift_hz, float),
+        np.asarray(cmds.shift_u_hz, float),
+        label,
+    )
 
 
 def cmws_spectrum(cmds, label="CMWS") -> SpectrumData | None:

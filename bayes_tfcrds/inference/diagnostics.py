@@ -1,4 +1,4 @@
-"""Ensemble MCMC (emcee) with convergence diagnostics that can say "no".
+"""Convergence diagnostics of ensemble MCMC (emcee) that can say "no", and their gates.
 
 Every Bayesian result in the toolkit is sampled through :func:`run_ensembles`. It runs
 ``n_ensembles`` (>= 4) *independent* emcee ensembles, because the walkers of one ensemble
@@ -60,6 +60,7 @@ Determinism and resume
     newest commit whose rows check out (see ``_HDFStore``). Reusing a file with a
     different seed raises instead of silently mixing chains.
 """
+
 from __future__ import annotations
 
 import math
@@ -70,7 +71,6 @@ import numpy as np
 from emcee.autocorr import auto_window
 from scipy.special import ndtri
 from scipy.stats import rankdata
-
 
 
 @dataclass(frozen=True)
@@ -106,6 +106,7 @@ def rhat_rank(chains) -> float:
         raise ValueError(f"need (n_chains >= 2, n_draws), got {x.shape}")
     if _arviz_major() >= 1:
         from arviz_stats.base import array_stats
+
         return float(array_stats.rhat(x, chain_axis=0, draw_axis=1, method="rank"))
     return float(_import_arviz().rhat(x, method="rank"))
 
@@ -141,7 +142,9 @@ def _ess_from_taus(taus, n_steps, n_walkers):
 
 
 def chain_diagnostics(x) -> dict:
-    """R-hat, bulk/tail ESS and tau_int of one quantity sampled as ``x`` (ensembles, steps, walkers).
+    """R-hat, bulk/tail ESS and tau_int of one quantity sampled as ``x``.
+
+    ``x`` has shape (ensembles, steps, walkers).
 
     Returns plain floats (JSON-able): ``rhat``, ``ess_bulk``, ``ess_tail``, ``tau_int``
     (largest over ensembles, steps), ``n_tau`` (steps / tau_int) and ``tau_int_ensembles``.
@@ -152,8 +155,14 @@ def chain_diagnostics(x) -> dict:
     n_ens, n, n_w = x.shape
     if not np.all(np.isfinite(x)):
         nan = float("nan")
-        return dict(rhat=nan, ess_bulk=nan, ess_tail=nan, tau_int=nan, n_tau=nan,
-                    tau_int_ensembles=[nan] * n_ens)
+        return dict(
+            rhat=nan,
+            ess_bulk=nan,
+            ess_tail=nan,
+            tau_int=nan,
+            n_tau=nan,
+            tau_int_ensembles=[nan] * n_ens,
+        )
     z = _rank_normal(x)
     tau = [integrated_time(z[e]) for e in range(n_ens)]
     q05, q95 = np.quantile(x, [0.05, 0.95])
@@ -172,12 +181,16 @@ def chain_diagnostics(x) -> dict:
 
 
 def burn_in(chains) -> int:
-    """Steps to discard from ``chains`` (ensembles, steps, walkers, ndim); rule in module docstring."""
+    """Steps to discard from ``chains`` (ensembles, steps, walkers, ndim); see the module doc."""
     n = chains.shape[1]
     start = math.ceil(0.2 * n)
     pilot = chains[:, start:]
-    tau = max(integrated_time(z[e]) for d in range(chains.shape[3])
-              for z in [_rank_normal(pilot[..., d])] for e in range(chains.shape[0]))
+    tau = max(
+        integrated_time(z[e])
+        for d in range(chains.shape[3])
+        for z in [_rank_normal(pilot[..., d])]
+        for e in range(chains.shape[0])
+    )
     if not math.isfinite(tau):
         return n // 2
     return min(max(start, math.ceil(2.0 * tau)), n // 2)
@@ -193,8 +206,8 @@ def _gate_failures(diagnostics: dict, gates: Gates) -> list:
             if not d[key] > gates.ess_min:
                 out.append(f"{key}({name})={d[key]:.4g} <= {gates.ess_min:g}")
         if not d["n_tau"] > gates.min_tau_multiple:
-            out.append(f"n_tau({name})={d['n_tau']:.4g} <= {gates.min_tau_multiple:g} "
-                       f"(kept length / tau_int, tau_int={d['tau_int']:.4g} steps)")
+            out.append(
+                f"n_tau({name})={d['n_tau']:.4g} <= {gates.min_tau_multiple:g} (kept length / "
+                f"tau_int, tau_int={d['tau_int']:.4g} steps)"
+            )
     return out
-
-

@@ -6,6 +6,7 @@ logarithms with uniform priors on wide physical ranges (scale-invariant priors);
 also encode physics: 0 <= Gamma2 <= (2/3) Gamma0 keeps the qSDHCP absorption non-negative,
 nu_VC >= 0, A > 0.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -15,8 +16,14 @@ import numpy as np
 from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, TFParams, transfer_function_array
 
 LOG_PARAMS = {"f_c_hz", "f_r_hz", "gamma_r"}
-H_PRIOR = {"f_c_hz": (1.0, 1e10), "a_r": (-0.99, 1e4), "f_r_hz": (1.0, 1e10), "gamma_r": (1e-3, 1e3),
-           "n_r": (0.5, 2.0), "scale": (0.0, 10.0)}
+H_PRIOR = {
+    "f_c_hz": (1.0, 1e10),
+    "a_r": (-0.99, 1e4),
+    "f_r_hz": (1.0, 1e10),
+    "gamma_r": (1e-3, 1e3),
+    "n_r": (0.5, 2.0),
+    "scale": (0.0, 10.0),
+}
 
 
 @dataclass(frozen=True)
@@ -38,13 +45,18 @@ class BeatNotePosterior:
         return tuple(("log_" + n if n in LOG_PARAMS else n) for n in self.free) + ("scale",)
 
     def to_sample(self, params: TFParams, scale: float) -> np.ndarray:
-        v = [np.log(getattr(params, n)) if n in LOG_PARAMS else getattr(params, n) for n in self.free]
+        v = [
+            np.log(getattr(params, n)) if n in LOG_PARAMS else getattr(params, n) for n in self.free
+        ]
         return np.array(v + [scale], float)
 
     def to_params(self, x) -> dict:
         """Natural-unit parameter arrays from samples x (..., ndim)."""
         x = np.asarray(x, float)
-        out = {n: (np.exp(x[..., i]) if n in LOG_PARAMS else x[..., i]) for i, n in enumerate(self.free)}
+        out = {
+            n: (np.exp(x[..., i]) if n in LOG_PARAMS else x[..., i])
+            for i, n in enumerate(self.free)
+        }
         out["scale"] = x[..., -1]
         return out
 
@@ -63,8 +75,17 @@ class BeatNotePosterior:
             full[n] = p[n][ok]
         col = {n: v[:, None] for n, v in full.items()}
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            h = np.abs(transfer_function_array(self.f_hz[None, :], col["f_c_hz"], col["a_r"], col["f_r_hz"],
-                                               col["gamma_r"], col["n_r"], self.fixed.variant))
+            h = np.abs(
+                transfer_function_array(
+                    self.f_hz[None, :],
+                    col["f_c_hz"],
+                    col["a_r"],
+                    col["f_r_hz"],
+                    col["gamma_r"],
+                    col["n_r"],
+                    self.fixed.variant,
+                )
+            )
             r = (p["scale"][ok, None] * h - self.h_mag[None, :]) / self.h_mag_u[None, :]
             chi2 = np.sum(r * r, axis=1)
         lp[ok] = np.where(np.isfinite(chi2), -0.5 * chi2, -np.inf)
@@ -73,7 +94,7 @@ class BeatNotePosterior:
 
 @dataclass(frozen=True)
 class LinePosterior:
-    """log p(line parameters | spectra) for a :class:`bayes_tfcrds.spectrum.LineModel` layout.
+    """log p(line parameters | spectra) for a :class:`bayes_tfcrds.fit.line.LineModel` layout.
 
     Sample space: the model's parameters in natural SI units (A in Hz/m, position offset and
     widths in Hz, baselines in the spectrum's unit); flat priors with the physical bounds.
@@ -100,7 +121,7 @@ class LinePosterior:
         ok = ~bad
         if not ok.any():
             return lp
-        cols = x[ok].T[:, :, None]                       # (ndim, n_ok, 1): broadcasts in predict
+        cols = x[ok].T[:, :, None]  # (ndim, n_ok, 1): broadcasts in predict
         chi2 = np.zeros(ok.sum())
         for s, pred in zip(self.spectra, self.model.predict(cols, self.spectra)):
             r = (pred - s.y[None, :]) / s.u[None, :]

@@ -1,13 +1,14 @@
 """The result of a sampling run: chains, diagnostics, gate status and arviz export."""
-from __future__ import annotations
 
-from bayes_tfcrds.output.files import atomic_path
+from __future__ import annotations
 
 import json
 from dataclasses import dataclass, field
 
 import numpy as np
+
 from bayes_tfcrds.inference.diagnostics import Gates, _arviz_major, _import_arviz
+from bayes_tfcrds.output.files import atomic_path
 
 
 # --------------------------------------------------------------------------- result
@@ -60,15 +61,22 @@ class SamplingResult:
         That is emcee's convention for arviz (a walker is a "chain"); note that arviz's own
         R-hat/ESS on these chains are not the gated diagnostics, which are in the attrs.
         """
+
         def chains(a):  # (E, S, W) -> (E * W, S)
             return np.swapaxes(np.asarray(a), 1, 2).reshape(-1, a.shape[1])
 
         posterior = {n: chains(self.samples[..., i]) for i, n in enumerate(self.names)}
         posterior.update({n: chains(v) for n, v in self.derived.items()})
         attrs = dict(
-            n_ensembles=self.n_ensembles, n_walkers=self.n_walkers, n_steps=self.n_steps,
-            burn=self.burn, passed=int(self.passed), status=self.status, label=self.label,
-            diagnostics=json.dumps(self.diagnostics), gates=json.dumps(self.gates.__dict__),
+            n_ensembles=self.n_ensembles,
+            n_walkers=self.n_walkers,
+            n_steps=self.n_steps,
+            burn=self.burn,
+            passed=int(self.passed),
+            status=self.status,
+            label=self.label,
+            diagnostics=json.dumps(self.diagnostics),
+            gates=json.dumps(self.gates.__dict__),
             acceptance=np.asarray(self.acceptance, dtype=float),
         )
         return _make_inference_data(posterior, {"lp": chains(self.log_prob)}, attrs)
@@ -83,8 +91,7 @@ def _make_inference_data(posterior: dict, sample_stats: dict, attrs: dict):
     """The one arviz constructor call: 0.2x ``from_dict(posterior=...)`` vs 1.x group dict."""
     az = _import_arviz()
     if _arviz_major() >= 1:
-        return az.from_dict({"posterior": posterior, "sample_stats": sample_stats},
-                            attrs={"posterior": attrs})
+        return az.from_dict(
+            {"posterior": posterior, "sample_stats": sample_stats}, attrs={"posterior": attrs}
+        )
     return az.from_dict(posterior=posterior, sample_stats=sample_stats, posterior_attrs=attrs)
-
-

@@ -1,34 +1,58 @@
 """The sampler runner: independent emcee ensembles extended until every gate passes."""
+
 from __future__ import annotations
 
 import json
 import math
 import signal
 import threading
-from typing import Callable, Optional, Sequence
+from collections.abc import Callable, Sequence
 
 import emcee
 import numpy as np
+
 from bayes_tfcrds.inference.diagnostics import Gates, _gate_failures, burn_in, chain_diagnostics
 from bayes_tfcrds.inference.result import SamplingResult, _frozen
-from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _StepRecorder, _same_rng_state
+from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _same_rng_state, _StepRecorder
 
 
 class _Ensemble:
     """One emcee ensemble advanced in committed chunks with a continuous random stream."""
 
-    def __init__(self, index, seed, log_prob, p0_fn, n_walkers, ndim, vectorize, pool,
-                 backend_path, chunk_steps, moves=None):
+    def __init__(
+        self,
+        index,
+        seed,
+        log_prob,
+        p0_fn,
+        n_walkers,
+        ndim,
+        vectorize,
+        pool,
+        backend_path,
+        chunk_steps,
+        moves=None,
+    ):
         init_rng, mcmc_rng = seed.spawn(2)
         ss = mcmc_rng.bit_generator.seed_seq
         fingerprint = json.dumps([str(ss.entropy), list(map(int, ss.spawn_key)), n_walkers, ndim])
         self.index, self.chunk_steps = index, chunk_steps
         self._p0 = lambda: p0_fn(init_rng, n_walkers)  # only needed for a fresh start
         self.rng0 = np.random.RandomState(np.random.MT19937(ss)).get_state()
-        self.sampler = emcee.EnsembleSampler(n_walkers, ndim, log_prob, pool=pool, moves=moves,
-                                             vectorize=vectorize, backend=_StepRecorder())
-        self.store = (_MemoryStore(n_walkers, ndim, fingerprint) if backend_path is None else
-                      _HDFStore(backend_path, f"ensemble{index}", n_walkers, ndim, fingerprint))
+        self.sampler = emcee.EnsembleSampler(
+            n_walkers,
+            ndim,
+            log_prob,
+            pool=pool,
+            moves=moves,
+            vectorize=vectorize,
+            backend=_StepRecorder(),
+        )
+        self.store = (
+            _MemoryStore(n_walkers, ndim, fingerprint)
+            if backend_path is None
+            else _HDFStore(backend_path, f"ensemble{index}", n_walkers, ndim, fingerprint)
+        )
         self.state = None
 
     def _initial_state(self):
@@ -41,13 +65,17 @@ class _Ensemble:
             raise ValueError(f"p0_fn returned shape {p0.shape}, need {shape}")
         lp, _ = self.sampler.compute_log_prob(p0)
         if not np.all(np.isfinite(lp)):
-            raise ValueError(f"ensemble {self.index}: p0_fn returned walkers with non-finite "
-                             f"log_prob {lp[~np.isfinite(lp)]} (outside the prior?)")
+            raise ValueError(
+                f"ensemble {self.index}: p0_fn returned walkers with non-finite log_prob "
+                f"{lp[~np.isfinite(lp)]} (outside the prior?)"
+            )
         return emcee.State(p0, log_prob=lp, random_state=self.rng0)
 
     def advance_to(self, n_total, pbar=None, stop=None):
-        """Run until the committed chain holds ``n_total`` steps (no-op if it already does);
-        on a ``stop`` request commit the steps taken so far and raise KeyboardInterrupt."""
+        """Run until the committed chain holds ``n_total`` steps (no-op if it already does).
+
+        On a ``stop`` request commit the steps taken so far and raise KeyboardInterrupt.
+        """
         while self.store.iteration < n_total:
             if self.state is None:
                 self.state = self._initial_state()
@@ -57,17 +85,19 @@ class _Ensemble:
             k = min(self.chunk_steps, n_total - self.store.iteration)
             rec = self.sampler.backend
             rec.reset(self.sampler.nwalkers, self.sampler.ndim)
-            for st in self.sampler.sample(self.state, iterations=k, store=True,
-                                          skip_initial_state_check=self.store.iteration > 0):
+            for st in self.sampler.sample(  # noqa: B007 - st is read after the loop
+                self.state,
+                iterations=k,
+                store=True,
+                skip_initial_state_check=self.store.iteration > 0,
+            ):
                 if pbar is not None:
                     pbar.update(1)
                 if stop is not None and stop.requested:
-                    break                  # the chain does not depend on where chunks end
+                    break  # the chain does not depend on where chunks end
             rs = self.sampler.random_state
-            self.store.append(rec.get_chain(), rec.get_log_prob(),
-                              np.array(rec.accepted_steps), rs)
-            self.state = emcee.State(st.coords.copy(), log_prob=st.log_prob.copy(),
-                                     random_state=rs)
+            self.store.append(rec.get_chain(), rec.get_log_prob(), np.array(rec.accepted_steps), rs)
+            self.state = emcee.State(st.coords.copy(), log_prob=st.log_prob.copy(), random_state=rs)
             if stop is not None and stop.requested:
                 raise KeyboardInterrupt
 
@@ -88,8 +118,10 @@ class _StopRequest:
         self._old = None
 
     def __enter__(self):
-        if (threading.current_thread() is threading.main_thread()
-                and signal.getsignal(signal.SIGINT) is signal.default_int_handler):
+        if (
+            threading.current_thread() is threading.main_thread()
+            and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+        ):
             self._old = signal.signal(signal.SIGINT, self._handle)
         return self
 
@@ -122,12 +154,19 @@ def _evaluate(names, chains, log_prob, accepted, derived_fn, gates, label) -> Sa
     rh = [d["rhat"] for d in diagnostics.values()]
     es = [min(d["ess_bulk"], d["ess_tail"]) for d in diagnostics.values()]
     return SamplingResult(
-        names=tuple(names), samples=_frozen(kept), log_prob=_frozen(lp_kept),
+        names=tuple(names),
+        samples=_frozen(kept),
+        log_prob=_frozen(lp_kept),
         diagnostics=diagnostics,
         rhat_max=float(np.nan if np.any(np.isnan(rh)) else max(rh)),
         ess_min=float(np.nan if np.any(np.isnan(es)) else min(es)),
-        passed=not failures, status=status, n_steps=n, burn=burn,
-        acceptance=_frozen(acc_kept.mean(axis=(1, 2))), derived=derived, gates=gates,
+        passed=not failures,
+        status=status,
+        n_steps=n,
+        burn=burn,
+        acceptance=_frozen(acc_kept.mean(axis=(1, 2))),
+        derived=derived,
+        gates=gates,
         label=label,
     )
 
@@ -138,7 +177,7 @@ def run_ensembles(
     names: Sequence[str],
     rng: np.random.Generator,
     n_ensembles: int = 4,
-    n_walkers: Optional[int] = None,
+    n_walkers: int | None = None,
     n_steps: int = 2000,
     max_steps: int = 20000,
     vectorize: bool = False,
@@ -148,7 +187,7 @@ def run_ensembles(
     pool=None,
     gates: Gates = Gates(),
     *,
-    derived_fn: Optional[Callable] = None,
+    derived_fn: Callable | None = None,
     chunk_steps: int = 100,
     moves=None,
 ) -> SamplingResult:
@@ -186,17 +225,36 @@ def run_ensembles(
         raise ValueError("chunk_steps must be >= 1")
 
     ensembles = [
-        _Ensemble(i, s, log_prob, p0_fn, n_walkers, ndim, vectorize, pool, backend_path, moves=moves, chunk_steps=
-                  int(chunk_steps))
+        _Ensemble(
+            i,
+            s,
+            log_prob,
+            p0_fn,
+            n_walkers,
+            ndim,
+            vectorize,
+            pool,
+            backend_path,
+            moves=moves,
+            chunk_steps=int(chunk_steps),
+        )
         for i, s in enumerate(rng.spawn(n_ensembles))
     ]
     bars = []
     if progress:
         from tqdm.auto import tqdm
+
         prefix = f"{label} " if label else ""
-        bars = [tqdm(total=n_steps, initial=min(e.store.iteration, n_steps),
-                     desc=f"{prefix}ensemble {e.index}", position=e.index, leave=True)
-                for e in ensembles]
+        bars = [
+            tqdm(
+                total=n_steps,
+                initial=min(e.store.iteration, n_steps),
+                desc=f"{prefix}ensemble {e.index}",
+                position=e.index,
+                leave=True,
+            )
+            for e in ensembles
+        ]
     stop = _StopRequest()
     try:
         stop.__enter__()

@@ -1,5 +1,9 @@
-"""Chain stores: in memory, or an HDF5 file with checksummed state slots that survives
-SIGINT and SIGKILL and resumes to bit-identical samples."""
+"""Chain stores.
+
+In memory, or an HDF5 file with checksummed state slots that survives SIGINT and SIGKILL and resumes
+to bit-identical samples.
+"""
+
 from __future__ import annotations
 
 import hashlib
@@ -10,8 +14,8 @@ import emcee
 import h5py
 import numpy as np
 
-
 _SEED_ATTR = "bayes_tfcrds_seed"
+
 
 # --------------------------------------------------------------------------- storage
 class _StepRecorder(emcee.backends.Backend):
@@ -75,16 +79,20 @@ class _HDFStore:
             except _Damaged as exc:
                 aside = f"{self.path}.damaged-{os.getpid()}"
                 os.replace(self.path, aside)
-                warnings.warn(f"{self.path}: {exc}; moved to {aside} and sampling {name} from its "
-                              "seed again (the result does not depend on it)", RuntimeWarning,
-                              stacklevel=4)
+                warnings.warn(
+                    f"{self.path}: {exc}; moved to {aside} and sampling {name} from its seed "
+                    "again (the result does not depend on it)",
+                    RuntimeWarning,
+                    stacklevel=4,
+                )
                 self.backend = emcee.backends.HDFBackend(self.path, name=name)
         if fresh:
             self.backend.reset(n_walkers, ndim)
             with self.backend.open("a") as f:
                 g = f[name]
-                g.create_dataset("accepted_step", (0, n_walkers), maxshape=(None, n_walkers),
-                                 dtype=np.uint8)
+                g.create_dataset(
+                    "accepted_step", (0, n_walkers), maxshape=(None, n_walkers), dtype=np.uint8
+                )
                 g.attrs[_SEED_ATTR] = fingerprint
             self.iteration = 0
 
@@ -99,28 +107,33 @@ class _HDFStore:
                 it = int(g.attrs["iteration"])
                 shape = (int(g.attrs["nwalkers"]), int(g.attrs["ndim"]))
                 if stored is None and it == 0:
-                    return False          # killed between creating the group and tagging it
+                    return False  # killed between creating the group and tagging it
                 if stored != fingerprint:
-                    raise ValueError(f"{self.path}:{name} was written with another seed or setup "
-                                     f"({stored!r} != {fingerprint!r}); use a new backend_path")
+                    raise ValueError(
+                        f"{self.path}:{name} was written with another seed or setup ({stored!r} "
+                        f"!= {fingerprint!r}); use a new backend_path"
+                    )
                 if shape != (n_walkers, ndim):
-                    raise ValueError(f"{self.path}:{name} holds shape {shape}, not "
-                                     f"{(n_walkers, ndim)}")
+                    raise ValueError(
+                        f"{self.path}:{name} holds shape {shape}, not {(n_walkers, ndim)}"
+                    )
                 if it == 0:
                     good = 0, None
                 else:
                     good = self._last_intact(g, it)
         except (OSError, KeyError, RuntimeError) as exc:
-            if "unable to lock file" in str(exc).lower():   # HDF5's lock: another run writes it
-                raise RuntimeError(f"{self.path} is open in another process (another run writing to the "
-                                   "same output?); not touched") from exc
+            if "unable to lock file" in str(exc).lower():  # HDF5's lock: another run writes it
+                raise RuntimeError(
+                    f"{self.path} is open in another process (another run writing to the same "
+                    "output?); not touched"
+                ) from exc
             raise _Damaged(f"cannot be read ({type(exc).__name__}: {exc})") from exc
         if good is None:
             raise _Damaged(f"ensemble {name} has no intact commit")
         n, state = good
         if n != it:
             with self.backend.open("a") as f:
-                f[name].attrs["iteration"] = n    # roll back over the incomplete commit
+                f[name].attrs["iteration"] = n  # roll back over the incomplete commit
         self.iteration, self._state = n, state
         return n > 0
 
@@ -136,13 +149,17 @@ class _HDFStore:
         if pre + "iteration" not in g.attrs:
             return None
         state = tuple(g.attrs[f"{pre}{i}"] for i in range(int(g.attrs[pre + "n"])))
-        return int(g.attrs[pre + "start"]), int(g.attrs[pre + "iteration"]), \
-            str(g.attrs[pre + "sha256"]), state
+        return (
+            int(g.attrs[pre + "start"]),
+            int(g.attrs[pre + "iteration"]),
+            str(g.attrs[pre + "sha256"]),
+            state,
+        )
 
     def _last_intact(self, g, it):
         """(iteration, generator state) of the newest commit whose rows are on disk, or None."""
         slots = [x for x in (self._slot(g, s) for s in range(self._SLOTS)) if x is not None]
-        if not slots:   # written before the slots existed: emcee's own attributes
+        if not slots:  # written before the slots existed: emcee's own attributes
             return it, tuple(v for k, v in sorted(g.attrs.items()) if k.startswith("random_state_"))
         n_rows = min(g[k].shape[0] for k in ("chain", "log_prob", "accepted_step"))
         for lo, hi, digest, state in sorted(slots, key=lambda x: -x[1]):
@@ -157,23 +174,26 @@ class _HDFStore:
             g = f[self.backend.name]
             for key, v in (("chain", chain), ("log_prob", log_prob), ("accepted_step", accepted)):
                 g[key].resize(it + k, axis=0)
-                g[key][it:it + k] = v
+                g[key][it : it + k] = v
             # recomputed, not incremented: a commit repeated after an interruption counts once
-            g["accepted"][:] = g["accepted_step"][:it + k].sum(axis=0)
-            for i, v in enumerate(random_state):       # emcee's layout (HDFBackend readers)
+            g["accepted"][:] = g["accepted_step"][: it + k].sum(axis=0)
+            for i, v in enumerate(random_state):  # emcee's layout (HDFBackend readers)
                 g.attrs[f"random_state_{i}"] = v
             # the slot not holding the last good commit (that one is never touched)
-            s = next(s for s in range(self._SLOTS)
-                     if g.attrs.get(f"bayes_tfcrds_state{s}_iteration", -1) != it)
+            s = next(
+                s
+                for s in range(self._SLOTS)
+                if g.attrs.get(f"bayes_tfcrds_state{s}_iteration", -1) != it
+            )
             pre = f"bayes_tfcrds_state{s}_"
-            g.attrs[pre + "iteration"] = -1             # invalid while it is being written
+            g.attrs[pre + "iteration"] = -1  # invalid while it is being written
             for i, v in enumerate(random_state):
                 g.attrs[f"{pre}{i}"] = v
             g.attrs[pre + "n"] = len(random_state)
             g.attrs[pre + "start"] = it
             g.attrs[pre + "sha256"] = self._rows_digest(g, it, it + k)
             g.attrs[pre + "iteration"] = it + k
-            g.attrs["iteration"] = it + k      # commit point: rows above become visible
+            g.attrs["iteration"] = it + k  # commit point: rows above become visible
             f.flush()
         self.iteration = it + k
         self._state = tuple(random_state)
@@ -196,7 +216,8 @@ class _Damaged(Exception):
 
 
 def _same_rng_state(a, b) -> bool:
-    return (str(a[0]) == str(b[0]) and np.array_equal(a[1], b[1])
-            and all(x == y for x, y in zip(a[2:], b[2:])))
-
-
+    return (
+        str(a[0]) == str(b[0])
+        and np.array_equal(a[1], b[1])
+        and all(x == y for x, y in zip(a[2:], b[2:]))
+    )

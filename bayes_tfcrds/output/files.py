@@ -19,8 +19,10 @@ TEMP_GLOB = ".*.tmp*"
 
 
 def temporary_name(path: Path, suffix: str = "") -> Path:
-    """A unique hidden name beside ``path``; ``suffix`` keeps a file type (``.png``) for writers
-    that choose their format from the name."""
+    """A unique hidden name beside ``path``.
+
+    ``suffix`` keeps a file type (``.png``) for writers that choose their format from the name.
+    """
     return path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp{suffix}")
 
 
@@ -31,8 +33,9 @@ def _fsync(path: Path) -> None:
 
 @contextmanager
 def atomic_path(path, suffix: str = "") -> Iterator[Path]:
-    """Yield a temporary path to write ``path``'s new content to; on a clean exit it is synced
-    and moved into place, on an exception it is removed.
+    """Yield a temporary path to write ``path``'s new content to.
+
+    On a clean exit it is synced and moved into place, on an exception it is removed.
 
     The directory must exist. ``suffix`` is appended to the temporary name (see
     :func:`temporary_name`).

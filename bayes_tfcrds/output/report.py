@@ -5,10 +5,8 @@ diagnostic with pass/fail, and provenance (package version, git commit, input-fi
 seeds, the study file itself). All text that came from outside (bundle attributes, study
 files) is HTML-escaped: a bundle's description may hold anything, including markup.
 """
-from __future__ import annotations
 
-from bayes_tfcrds.output.files import atomic_path, atomic_write_text
-from bayes_tfcrds.output.plotting import pyplot
+from __future__ import annotations
 
 import base64
 import hashlib
@@ -19,10 +17,12 @@ import platform
 import subprocess
 import sys
 from dataclasses import dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 
 from bayes_tfcrds._version import __version__
+from bayes_tfcrds.output.files import atomic_path, atomic_write_text
+from bayes_tfcrds.output.plotting import pyplot
 
 
 @dataclass
@@ -30,11 +30,11 @@ class Report:
     """A report being assembled: call the ``add_*`` methods in reading order, then ``write``."""
 
     title: str
-    summary_rows: list = field(default_factory=list)       # (label, value, note)
-    blocks: list = field(default_factory=list)             # ("h2"|"p"|"table"|"figure"|"pre", payload)
-    diagnostics: list = field(default_factory=list)        # (name, passed, detail)
+    summary_rows: list = field(default_factory=list)  # (label, value, note)
+    blocks: list = field(default_factory=list)  # ("h2"|"p"|"table"|"figure"|"pre", payload)
+    diagnostics: list = field(default_factory=list)  # (name, passed, detail)
     provenance: dict = field(default_factory=dict)
-    figures: list = field(default_factory=list)            # matplotlib figures, for the PDF
+    figures: list = field(default_factory=list)  # matplotlib figures, for the PDF
 
     def add_summary(self, label, value, note=""):
         self.summary_rows.append((str(label), str(value), str(note)))
@@ -49,13 +49,17 @@ class Report:
         self.blocks.append(("pre", str(text)))
 
     def add_table(self, header, rows, caption=""):
-        self.blocks.append(("table", ([str(h) for h in header], [[str(c) for c in r] for r in rows], str(caption))))
+        self.blocks.append(
+            ("table", ([str(h) for h in header], [[str(c) for c in r] for r in rows], str(caption)))
+        )
 
     def add_figure(self, fig, caption=""):
         """Embed a matplotlib figure as a compressed PNG (and keep it for the PDF)."""
         buf = io.BytesIO()
         fig.savefig(buf, format="png", dpi=80, bbox_inches="tight", metadata={"Software": None})
-        self.blocks.append(("figure", (base64.b64encode(buf.getvalue()).decode("ascii"), str(caption))))
+        self.blocks.append(
+            ("figure", (base64.b64encode(buf.getvalue()).decode("ascii"), str(caption)))
+        )
         self.figures.append((fig, str(caption)))
 
     def add_diagnostic(self, name, passed: bool, detail=""):
@@ -63,16 +67,28 @@ class Report:
 
     def to_html(self) -> str:
         e = html.escape
-        parts = [f"<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'><title>{e(self.title)}</title>",
-                 "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
-                 "table{border-collapse:collapse;margin:1em 0;font-size:90%}td,th{border:1px solid #bbb;"
-                 "padding:3px 7px;text-align:left}th{background:#eee}img{max-width:100%}.pass{color:#060}"
-                 ".fail{color:#b00;font-weight:bold}pre{background:#f6f6f6;padding:.6em;overflow-x:auto;"
-                 "font-size:85%}figcaption{font-size:90%;color:#444}</style></head><body>",
-                 f"<h1>{e(self.title)}</h1>"]
+        parts = [
+            "<!DOCTYPE html><html lang='en'><head><meta "
+            f"charset='utf-8'><title>{e(self.title)}</title>",
+            "<style>"
+            "body{font-family:sans-serif;max-width:1100px;margin:2em auto;padding:0 1em;color:#222}"
+            "table{border-collapse:collapse;margin:1em 0;font-size:90%}"
+            "td,th{border:1px solid #bbb;padding:3px 7px;text-align:left}"
+            "th{background:#eee}img{max-width:100%}.pass{color:#060}"
+            ".fail{color:#b00;font-weight:bold}"
+            "pre{background:#f6f6f6;padding:.6em;overflow-x:auto;font-size:85%}"
+            "figcaption{font-size:90%;color:#444}"
+            "</style></head><body>",
+            f"<h1>{e(self.title)}</h1>",
+        ]
         if self.summary_rows:
-            parts.append("<h2>Summary</h2><table><tr><th>quantity</th><th>value</th><th>note</th></tr>")
-            parts += [f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{e(c)}</td></tr>" for a, b, c in self.summary_rows]
+            parts.append(
+                "<h2>Summary</h2><table><tr><th>quantity</th><th>value</th><th>note</th></tr>"
+            )
+            parts += [
+                f"<tr><td>{e(a)}</td><td>{e(b)}</td><td>{e(c)}</td></tr>"
+                for a, b, c in self.summary_rows
+            ]
             parts.append("</table>")
         for kind, payload in self.blocks:
             if kind == "h2":
@@ -89,12 +105,19 @@ class Report:
                 parts.append("</table>")
             elif kind == "figure":
                 data, caption = payload
-                parts.append(f"<figure><img alt='{e(caption)}' src='data:image/png;base64,{data}'>"
-                             f"<figcaption>{e(caption)}</figcaption></figure>")
-        parts.append("<h2>Diagnostics</h2><table><tr><th>check</th><th>result</th><th>detail</th></tr>")
+                parts.append(
+                    f"<figure><img alt='{e(caption)}' "
+                    f"src='data:image/png;base64,{data}'>"
+                    f"<figcaption>{e(caption)}</figcaption></figure>"
+                )
+        parts.append(
+            "<h2>Diagnostics</h2><table><tr><th>check</th><th>result</th><th>detail</th></tr>"
+        )
         for name, ok, detail in self.diagnostics:
             cls, word = ("pass", "PASS") if ok else ("fail", "FAIL")
-            parts.append(f"<tr><td>{e(name)}</td><td class='{cls}'>{word}</td><td>{e(detail)}</td></tr>")
+            parts.append(
+                f"<tr><td>{e(name)}</td><td class='{cls}'>{word}</td><td>{e(detail)}</td></tr>"
+            )
         parts.append("</table><h2>Provenance</h2><table>")
         for k, v in self.provenance.items():
             if k == "study_file":
@@ -104,10 +127,13 @@ class Report:
         if "study_file" in self.provenance:
             parts.append(f"<h3>Study file</h3><pre>{e(self.provenance['study_file'])}</pre>")
         # mark the page once every embedded image has decoded (checked by the rendering test)
-        parts.append("<script>window.addEventListener('load',function(){var i=document.images,ok=true;"
-                     "for(var k=0;k<i.length;k++){if(!i[k].complete||i[k].naturalWidth===0){ok=false;}}"
-                     "document.body.setAttribute('data-images-ok',ok?'true':'false');"
-                     "document.body.setAttribute('data-image-count',String(i.length));});</script>")
+        parts.append(
+            "<script>window.addEventListener('load',function(){"
+            "var i=document.images,ok=true;"
+            "for(var k=0;k<i.length;k++){if(!i[k].complete||i[k].naturalWidth===0){ok=false;}}"
+            "document.body.setAttribute('data-images-ok',ok?'true':'false');"
+            "document.body.setAttribute('data-image-count',String(i.length));});</script>"
+        )
         parts.append("</body></html>")
         return "\n".join(parts)
 
@@ -115,13 +141,16 @@ class Report:
         """Write ``stem.html`` and ``stem.pdf`` (figures) atomically; returns their paths."""
         plt = pyplot()
         from matplotlib.backends.backend_pdf import PdfPages
+
         out = Path(outdir)
         out.mkdir(parents=True, exist_ok=True)
         html_path = out / f"{stem}.html"
         atomic_write_text(html_path, self.to_html())
         pdf_path = out / f"{stem}.pdf"
         with atomic_path(pdf_path) as tmp_pdf:
-            with PdfPages(tmp_pdf, metadata={"Title": self.title, "CreationDate": None, "ModDate": None}) as pdf:
+            with PdfPages(
+                tmp_pdf, metadata={"Title": self.title, "CreationDate": None, "ModDate": None}
+            ) as pdf:
                 for fig, _ in self.figures:
                     pdf.savefig(fig)
         for fig, _ in self.figures:
@@ -141,11 +170,18 @@ def git_commit(path=None) -> str:
     """The checkout's commit (with ``+dirty`` when it has uncommitted changes), or ``unknown``."""
     cwd = Path(path or Path(__file__).resolve().parent)
     try:
-        rev = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10)
+        rev = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True, timeout=10
+        )
         if rev.returncode != 0:
             return "unknown"
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd,
-                               capture_output=True, text=True, timeout=10)
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--untracked-files=no"],
+            cwd=cwd,
+            capture_output=True,
+            text=True,
+            timeout=10,
+        )
         return rev.stdout.strip() + ("+dirty" if dirty.stdout.strip() else "")
     except (OSError, subprocess.SubprocessError):
         return "unknown"
@@ -155,10 +191,16 @@ def provenance(seeds=None, inputs=(), study_text=None, extra=None) -> dict:
     """Package version, git commit, Python and library versions, input hashes, seeds."""
     import numpy
     import scipy
-    prov = {"package": f"bayes-tfcrds {__version__}", "git_commit": git_commit(),
-            "python": sys.version.split()[0], "platform": platform.platform(),
-            "numpy": numpy.__version__, "scipy": scipy.__version__,
-            "generated_utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ")}
+
+    prov = {
+        "package": f"bayes-tfcrds {__version__}",
+        "git_commit": git_commit(),
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "numpy": numpy.__version__,
+        "scipy": scipy.__version__,
+        "generated_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
     for p in inputs:
         prov[f"sha256 {Path(p).name}"] = file_sha256(p)
     if seeds is not None:

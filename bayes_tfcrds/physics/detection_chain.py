@@ -4,22 +4,23 @@ The simulator needs a truth that does not share the forward model's discretisati
 written as poles and residues, ``H(s) = sum_i r_i / (s - p_i)`` with s = 2 pi i f, has a closed
 form response to the ring-down input ``x(t) = 1`` (t < 0), ``exp(-t/tau)`` (t >= 0):
 
-    y(t) = sum_i r_i [ exp(p_i t) (1/(p_i + 1/tau) - 1/p_i) - exp(-t/tau)/(p_i + 1/tau) ],  t >= 0
-    y(t) = H(0),                                                                                t < 0
+    y(t) = sum_i r_i [ exp(p_i t) (1/(p_i + 1/tau) - 1/p_i) - exp(-t/tau)/(p_i + 1/tau) ], t >= 0
+    y(t) = H(0),                                                                               t < 0
 
 sampled exactly at any instant, and for an input that starts at t = 0 from nothing,
 ``x(t) = exp(lam t)`` (t >= 0, complex lam allowed):
 
     y(t) = sum_i r_i (exp(p_i t) - exp(lam t)) / (p_i - lam) + D x(t).
 
-Both are evaluated through E(t) = (exp(p t) - exp(lam t)) / (p - lam) = t exp(p t) phi1((lam - p) t),
-phi1(z) = (e^z - 1)/z, whose series is used for small |z|: where tau meets a real pole
+Both are evaluated through E(t) = (exp(p t) - exp(lam t)) / (p - lam) = t exp(p t) phi1((lam - p)
+t), phi1(z) = (e^z - 1)/z, whose series is used for small |z|: where tau meets a real pole
 (p -> -1/tau) the two exponentials coincide, their coefficients diverge and cancel, and the
 direct form would lose about eps/|1 + p tau| (more in derivatives).
 
 A direct term D (H(s) -> D at high frequency) describes an ideal chain (D = 1, no poles).
 Units: poles and lam in rad/s (1/s), times in s.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,18 +29,17 @@ import numpy as np
 
 from bayes_tfcrds.physics.transfer_function import TFParams
 
-
-PHI_SERIES = 0.5           # |z| below which phi1 and its derivative come from their series
+PHI_SERIES = 0.5  # |z| below which phi1 and its derivative come from their series
 
 
 def _phi1(z):
-    """phi1(z) = (e^z - 1)/z and phi1'(z), for complex z with |z| < PHI_SERIES (series; ~1e-33 tail)."""
+    """phi1(z) = (e^z - 1)/z and phi1'(z) for complex |z| < PHI_SERIES (series; ~1e-33 tail)."""
     z = np.asarray(z, complex)
     f, df = np.zeros_like(z), np.zeros_like(z)
-    term = np.ones_like(z)                         # z^k / (k + 1)!
+    term = np.ones_like(z)  # z^k / (k + 1)!
     for k in range(24):
         f = f + term
-        df = df + term * (k + 1) / (k + 2)          # (k + 1) z^k / (k + 2)!
+        df = df + term * (k + 1) / (k + 2)  # (k + 1) z^k / (k + 2)!
         term = term * z / (k + 2)
     return f, df
 
@@ -49,15 +49,19 @@ def pole_term(p, lam, t, derivative: bool = False):
 
     ``p``, ``lam`` complex (1/s) and ``t`` (s, >= 0) broadcast together.
     """
-    p, lam, t = np.broadcast_arrays(np.asarray(p, complex), np.asarray(lam, complex), np.asarray(t, float))
+    p, lam, t = np.broadcast_arrays(
+        np.asarray(p, complex), np.asarray(lam, complex), np.asarray(t, float)
+    )
     d = p - lam
     near = np.abs(d * t) < PHI_SERIES
     ept = np.exp(p * t)
     elt = np.exp(lam * t)
     with np.errstate(divide="ignore", invalid="ignore"):
         e = (ept - elt) / d
-        de = (e - t * elt) / d if derivative else None     # [(e^{pt} - e^{lam t}) - d t e^{lam t}] / d^2
-    if np.any(near):                                        # where the two exponentials (nearly) coincide
+        de = (
+            (e - t * elt) / d if derivative else None
+        )  # [(e^{pt} - e^{lam t}) - d t e^{lam t}] / d^2
+    if np.any(near):  # where the two exponentials (nearly) coincide
         tn, en = t[near], ept[near]
         f, df = _phi1(-d[near] * tn)
         e[near] = tn * en * f
@@ -87,8 +91,12 @@ class RationalChain:
     def frequency_response(self, f_hz) -> np.ndarray:
         """H(f) at frequencies f (Hz), dimensionless."""
         s = 2j * np.pi * np.asarray(f_hz, float)[..., None]
-        return np.sum(np.asarray(self.residues, complex) / (s - np.asarray(self.poles, complex)), axis=-1) \
+        return (
+            np.sum(
+                np.asarray(self.residues, complex) / (s - np.asarray(self.poles, complex)), axis=-1
+            )
             + self.direct
+        )
 
     def causal_exponential_response(self, t_s, lam) -> np.ndarray:
         """Complex response at times t (s) to exp(lam t) switched on at t = 0 (lam in 1/s).
@@ -130,7 +138,11 @@ class RationalChain:
     def impulse_response(self, t_s) -> np.ndarray:
         """h(t) in 1/s at times t (s), zero for t < 0 (the direct term's delta is omitted)."""
         t = np.asarray(t_s, float)[..., None]
-        h = np.real(np.sum(np.asarray(self.residues) * np.exp(np.asarray(self.poles) * np.clip(t, 0, None)), -1))
+        h = np.real(
+            np.sum(
+                np.asarray(self.residues) * np.exp(np.asarray(self.poles) * np.clip(t, 0, None)), -1
+            )
+        )
         return np.where(t[..., 0] < 0, 0.0, h)
 
     def slowest_time_s(self) -> float:
@@ -139,8 +151,8 @@ class RationalChain:
             return 0.0
         return float(np.max(-1.0 / np.asarray(self.poles).real))
 
-    def with_optical_pole(self, tau_x_s: float) -> "RationalChain":
-        """This chain in series with 1/(1 + s tau_x) (residues recomputed; unit DC gain kept)."""
+    def with_optical_pole(self, tau_x_s: float) -> RationalChain:
+        """The chain in series with 1/(1 + s tau_x) (residues recomputed; unit DC gain kept)."""
         wx = 1.0 / tau_x_s
         p = np.asarray(self.poles, complex)
         r = np.asarray(self.residues, complex)
@@ -160,8 +172,9 @@ def _second_order(w_r: float, q: float, gain: float):
     p1 = w_r * (-1.0 / (2 * q) + disc)
     p2 = w_r * (-1.0 / (2 * q) - disc)
     if abs(p1 - p2) < 1e-9 * w_r:
-        raise ValueError("critically damped resonance (gamma_r = 0.5) has a double pole; "
-                         "perturb gamma_r")
+        raise ValueError(
+            "critically damped resonance (gamma_r = 0.5) has a double pole; perturb gamma_r"
+        )
     return [p1, p2], [gain * w_r**2 / (p1 - p2), gain * w_r**2 / (p2 - p1)]
 
 

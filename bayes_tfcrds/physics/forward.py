@@ -21,6 +21,7 @@ Two windows place the kink and the periodic FFT grid:
 The DFT of the sampled x is a geometric series, evaluated in closed form (with its tau
 derivative), so each evaluation costs one inverse real FFT per transient, batched.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -29,7 +30,12 @@ from functools import lru_cache
 import numpy as np
 from scipy import fft as sfft
 
-from bayes_tfcrds.physics.transfer_function import TFParams, settling_times, transfer_function, transfer_function_derivatives
+from bayes_tfcrds.physics.transfer_function import (
+    TFParams,
+    settling_times,
+    transfer_function,
+    transfer_function_derivatives,
+)
 
 WINDOWS = ("extinction", "letter")
 WRAP_TOL = 1e-7
@@ -87,8 +93,15 @@ def extinction_grid(t0_s: float, dt_s: float, n_samples: int, tf: TFParams | Non
     # the flat part inside the record counts as history too, but we pad regardless
     n_lead = int(np.ceil(lead / dt_s)) + 1
     n_fft = sfft.next_fast_len(n_hist + n_samples + n_lead + RAMP_SAMPLES, real=True)
-    return Grid(n_fft=n_fft, start_s=t0_s - n_hist * dt_s, dt_s=dt_s, data_offset=n_hist,
-                first_data=0, n_data=n_samples, n_ramp=n_fft - n_hist - n_samples - n_lead)
+    return Grid(
+        n_fft=n_fft,
+        start_s=t0_s - n_hist * dt_s,
+        dt_s=dt_s,
+        data_offset=n_hist,
+        first_data=0,
+        n_data=n_samples,
+        n_ramp=n_fft - n_hist - n_samples - n_lead,
+    )
 
 
 def letter_grid(t0_s: float, dt_s: float, n_samples: int, t_cut_s: float) -> Grid:
@@ -102,8 +115,14 @@ def letter_grid(t0_s: float, dt_s: float, n_samples: int, t_cut_s: float) -> Gri
     if n_a < 4:
         raise ValueError(f"t_cut = {t_cut_s:g} s leaves {n_a} samples of the record")
     n_fft = sfft.next_fast_len(3 * n_a, real=True)
-    return Grid(n_fft=n_fft, start_s=-n_a * dt_s, dt_s=dt_s, data_offset=n_a - j_a,
-                first_data=j_a, n_data=n_samples)
+    return Grid(
+        n_fft=n_fft,
+        start_s=-n_a * dt_s,
+        dt_s=dt_s,
+        data_offset=n_a - j_a,
+        first_data=j_a,
+        n_data=n_samples,
+    )
 
 
 @lru_cache(maxsize=32)
@@ -122,8 +141,8 @@ def _grid_terms(grid: Grid):
     c1 = np.zeros(grid.n_fft)
     if grid.n_ramp:
         shape = ramp_shape(grid.n_ramp)
-        c[grid.m_ramp:] = shape
-        c1[grid.m_ramp:] = 1.0 - shape
+        c[grid.m_ramp :] = shape
+        c1[grid.m_ramp :] = 1.0 - shape
     fixed = flat + sfft.rfft(c)
     ramp_ve = sfft.rfft(c1)
     # 1 - q w^k = -(expm1(x) cos(phase) + cosm1(phase)) - i e^x sin(phase), x = -dt/tau:
@@ -142,13 +161,13 @@ def input_spectrum(tau_s, grid: Grid, derivative: bool = False):
     fixed, wkm0, wkmr, ramp_ve, (cos_p, cosm1_p, sin_p), _ = _grid_terms(grid)
     dt = grid.dt_s
     m0 = grid.m0
-    s_m0 = grid.start_s + m0 * dt          # time of the first decaying sample (>= 0)
-    big_m = grid.m_ramp - m0               # number of decaying samples before the ramp
+    s_m0 = grid.start_s + m0 * dt  # time of the first decaying sample (>= 0)
+    big_m = grid.m_ramp - m0  # number of decaying samples before the ramp
     a = np.exp(-s_m0 / tau)
     q_m = np.exp(-big_m * dt / tau)
-    v_e = a * q_m                          # the exponential's value where the ramp starts
+    v_e = a * q_m  # the exponential's value where the ramp starts
     x = -dt / tau
-    d = -(np.expm1(x) * cos_p + cosm1_p) - 1j * (np.exp(x) * sin_p)      # 1 - q w^k
+    d = -(np.expm1(x) * cos_p + cosm1_p) - 1j * (np.exp(x) * sin_p)  # 1 - q w^k
     inv_d = 1.0 / d
     num = wkm0 - q_m * wkmr
     a_num_d = (a * num) * inv_d
@@ -168,7 +187,9 @@ def _chunks(n_rows: int, n_fft: int, budget: int = 1 << 18):
         yield slice(i, min(n_rows, i + step))
 
 
-def filtered_response(tau_s, grid: Grid, h_k, derivative: bool = False, dh_k=None, fill: float = np.nan):
+def filtered_response(
+    tau_s, grid: Grid, h_k, derivative: bool = False, dh_k=None, fill: float = np.nan
+):
     """g(t; tau) = IFFT(X H) at the data samples covered by ``grid``, batched over tau.
 
     ``h_k`` is H at the grid's rfft frequencies (from :func:`grid_transfer_function`), or None
@@ -202,7 +223,7 @@ def filtered_response(tau_s, grid: Grid, h_k, derivative: bool = False, dh_k=Non
         g[sl, lo:] = out[:nb, cols]
         pos = nb
         if derivative:
-            dg[sl, lo:] = out[pos:pos + nb, cols]
+            dg[sl, lo:] = out[pos : pos + nb, cols]
             pos += nb
         if dh_k is not None:
             dgt[sl, :, lo:] = out[pos:].reshape(nb, dh_k.shape[0], -1)[:, :, cols]
@@ -225,9 +246,10 @@ def grid_transfer_function(grid: Grid, tf: TFParams | None, derivative_names=())
     return h, transfer_function_derivatives(f_hz, tf, tuple(derivative_names))
 
 
-def model_grids(t0_s: float, dt_s: float, n_samples: int, t_cuts_s, tf: TFParams | None,
-                window: str):
-    """One grid per t_cut (``letter``) or one shared grid (``extinction``): list aligned with t_cuts."""
+def model_grids(
+    t0_s: float, dt_s: float, n_samples: int, t_cuts_s, tf: TFParams | None, window: str
+):
+    """One grid per t_cut (``letter``) or one shared grid (``extinction``), aligned with t_cuts."""
     if window not in WINDOWS:
         raise ValueError(f"window must be one of {WINDOWS}, got {window!r}")
     if window == "extinction":
@@ -236,8 +258,15 @@ def model_grids(t0_s: float, dt_s: float, n_samples: int, t_cuts_s, tf: TFParams
     return [letter_grid(t0_s, dt_s, n_samples, tc) for tc in t_cuts_s]
 
 
-def ringdown_model(time_s, tau_s, amplitude_v, offset_v, tf: TFParams | None, window: str = "extinction",
-                   t_cut_s: float = 0.0):
+def ringdown_model(
+    time_s,
+    tau_s,
+    amplitude_v,
+    offset_v,
+    tf: TFParams | None,
+    window: str = "extinction",
+    t_cut_s: float = 0.0,
+):
     """S_fit(t) in volts at the uniformly spaced ``time_s`` (s, relative to extinction).
 
     ``tau_s`` (s), ``amplitude_v`` (V) and ``offset_v`` (V) broadcast over transients. For the
@@ -248,4 +277,7 @@ def ringdown_model(time_s, tau_s, amplitude_v, offset_v, tf: TFParams | None, wi
     dt = float(t[1] - t[0])
     grid = model_grids(t[0], dt, t.size, [t_cut_s], tf, window)[0]
     g = filtered_response(tau_s, grid, grid_transfer_function(grid, tf))
-    return np.asarray(offset_v, float).reshape(-1, 1) + np.asarray(amplitude_v, float).reshape(-1, 1) * g
+    return (
+        np.asarray(offset_v, float).reshape(-1, 1)
+        + np.asarray(amplitude_v, float).reshape(-1, 1) * g
+    )

@@ -6,14 +6,15 @@ module is the one place where they become SI (Hz, Hz/Pa). The line intensity sta
 cm/molecule, the only edge-unit field, because that is the unit in which it is reported
 and compared (constants.intensity_from_cm_per_molecule converts it to an area).
 """
+
 from __future__ import annotations
 
 import functools
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
 from types import MappingProxyType
-from typing import Mapping
 
 import numpy as np
 
@@ -22,15 +23,26 @@ from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
 
 __all__ = ["Source", "LineData", "load_line", "available_lines"]
 
-_HZ_PER_CM = 100.0 * C                  # 1 cm^-1 in Hz
+_HZ_PER_CM = 100.0 * C  # 1 cm^-1 in Hz
 _HZ_PER_PA_PER_CM_PER_ATM = _HZ_PER_CM / ATM
 
 # numeric keys every line file must define (each also needs a [sources] entry)
 _REQUIRED = (
-    "temperature_k", "mass_u", "nu0_cm", "nu0_u_cm", "intensity_cm_per_molecule",
-    "intensity_u_cm_per_molecule", "gamma0_self_cm_per_atm", "delta0_self_cm_per_atm",
-    "nu_vc_self_cm_per_atm", "gamma0_air_cm_per_atm", "n_gamma0_air",
-    "delta0_air_cm_per_atm", "nu_vc_air_cm_per_atm", "gamma2_ratio", "delta2_ratio",
+    "temperature_k",
+    "mass_u",
+    "nu0_cm",
+    "nu0_u_cm",
+    "intensity_cm_per_molecule",
+    "intensity_u_cm_per_molecule",
+    "gamma0_self_cm_per_atm",
+    "delta0_self_cm_per_atm",
+    "nu_vc_self_cm_per_atm",
+    "gamma0_air_cm_per_atm",
+    "n_gamma0_air",
+    "delta0_air_cm_per_atm",
+    "nu_vc_air_cm_per_atm",
+    "gamma2_ratio",
+    "delta2_ratio",
 )
 
 
@@ -117,16 +129,22 @@ def _parse(text: str, origin: str) -> LineData:
     cited = raw.get("sources", {})
     if raw.get("schema") != 1:
         raise ValueError(f"{origin}: unsupported schema {raw.get('schema')!r}")
-    numeric = [k for k, v in raw.items()
-               if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "schema"]
+    numeric = [
+        k
+        for k, v in raw.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "schema"
+    ]
     uncited = [k for k in numeric if k not in cited]
     if uncited:
         raise ValueError(f"{origin}: no [sources] entry for {uncited}")
     sources = {}
     for key, entry in cited.items():
-        if not isinstance(entry.get("reference"), str) or not isinstance(entry.get("estimate"), bool):
-            raise ValueError(f"{origin}: sources.{key} needs a 'reference' string and an "
-                             "'estimate' boolean")
+        if not isinstance(entry.get("reference"), str) or not isinstance(
+            entry.get("estimate"), bool
+        ):
+            raise ValueError(
+                f"{origin}: sources.{key} needs a 'reference' string and an 'estimate' boolean"
+            )
         sources[key] = Source(entry["reference"], entry["estimate"])
     per_pa = _HZ_PER_PA_PER_CM_PER_ATM
     return LineData(
@@ -150,12 +168,13 @@ def _parse(text: str, origin: str) -> LineData:
     )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _catalogue() -> dict:
     """All line files in bayes_tfcrds/data, keyed by their 'name'."""
     lines = {}
-    for entry in sorted(resources.files("bayes_tfcrds").joinpath("data").iterdir(),
-                        key=lambda e: e.name):
+    for entry in sorted(
+        resources.files("bayes_tfcrds").joinpath("data").iterdir(), key=lambda e: e.name
+    ):
         if entry.name.endswith(".toml"):
             line = _parse(entry.read_text(encoding="utf-8"), entry.name)
             lines[line.name] = line

@@ -17,15 +17,16 @@ visits (Gamma2 -> 0 and = 0, nu_VC -> 0, Doppler- and collision-dominated regime
 wings); see ``_speed_averaged`` for the branches. Gaussian, Lorentzian, Voigt, speed-
 dependent Voigt and Rautian (hard-collision) profiles are thin limits of it.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 from scipy.special import dawsn, wofz
 
-from bayes_tfcrds.core.constants import AMU, C, K_B
+from bayes_tfcrds.core.constants import AMU, K_B, C
 
 __all__ = [
     "doppler_hwhm_hz",
@@ -64,13 +65,19 @@ def doppler_hwhm_hz(nu0_hz, temperature_k, mass_u):
     mass_u: molecular mass in unified atomic mass units (u). Broadcasts.
     """
     m = np.asarray(mass_u, dtype=float) * AMU
-    return (np.asarray(nu0_hz, dtype=float) / C
-            * np.sqrt(2.0 * np.log(2.0) * K_B * np.asarray(temperature_k, dtype=float) / m))
+    return (
+        np.asarray(nu0_hz, dtype=float)
+        / C
+        * np.sqrt(2.0 * np.log(2.0) * K_B * np.asarray(temperature_k, dtype=float) / m)
+    )
 
 
 def _check_doppler(gd):
-    """The Doppler-broadened profiles divide by GammaD: refuse GammaD <= 0 (or NaN) loudly
-    rather than return NaN; use `lorentzian` for the GammaD -> 0 limit."""
+    """The Doppler-broadened profiles divide by GammaD.
+
+    Refuse GammaD <= 0 (or NaN) loudly rather than return NaN; use `lorentzian` for the GammaD -> 0
+    limit.
+    """
     if not np.all(np.asarray(gd) > 0):
         raise ValueError("doppler_hwhm_hz must be > 0")
 
@@ -90,9 +97,9 @@ def _one_minus_sqrtpi_r_w(r):
         coef = 1.0
         coefs = []
         for n in range(1, 11):
-            coef *= (2 * n - 1)
+            coef *= 2 * n - 1
             coefs.append((-1) ** (n + 1) * coef)
-        for c in reversed(coefs):           # Horner in t: t (c1 + t (c2 + ...))
+        for c in reversed(coefs):  # Horner in t: t (c1 + t (c2 + ...))
             acc = (acc + c) * t
         out[big] = acc
     small = ~big
@@ -103,8 +110,9 @@ def _one_minus_sqrtpi_r_w(r):
 
 
 def _w_of_i_over_u(u):
-    """The Maxwell-average term for the second qSD root Z+ = 1/u (dimensionless), finite as
-    u -> 0.
+    """The Maxwell-average term for the second qSD root Z+ = 1/u, finite as u -> 0.
+
+    Dimensionless.
 
     It is w(i/u) when Re Z+ >= 0, which holds throughout the physical domain (Gamma2 >= 0,
     Re C0~ >= 0). For Gamma2 < 0 (Re Z+ < 0) it is -w(-i/u): the speed integral
@@ -125,7 +133,7 @@ def _w_of_i_over_u(u):
         out[series] = us / _SQRT_PI * (1.0 + u2 * (-0.5 + u2 * (0.75 - 1.875 * u2)))
     rest = ~series
     if np.any(rest):
-        z = 1j / u[rest]                    # i Z+; Im z = Re Z+
+        z = 1j / u[rest]  # i Z+; Im z = Re Z+
         left = z.imag < 0
         out[rest] = np.where(left, -wofz(np.where(left, -z, 0.0)), wofz(np.where(left, 0.0, z)))
     return out
@@ -177,8 +185,16 @@ def _speed_averaged(z0, kappa):
     return a
 
 
-def qsdhcp(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0.0,
-           delta2_hz=0.0, nu_vc_hz=0.0):
+def qsdhcp(
+    nu_hz,
+    nu0_hz,
+    doppler_hwhm_hz,
+    gamma0_hz,
+    gamma2_hz=0.0,
+    delta0_hz=0.0,
+    delta2_hz=0.0,
+    nu_vc_hz=0.0,
+):
     """Quadratic speed-dependent hard-collision profile (HTP with eta = 0), complex, 1/Hz.
 
     nu_hz, nu0_hz: frequency and unperturbed line centre (Hz); doppler_hwhm_hz: Doppler
@@ -200,14 +216,26 @@ def qsdhcp(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0
     is defined for Delta2 = 0 and 4 ln2 |Gamma2| Re C0~ < GammaD^2, where it is finite at
     every detuning; elsewhere it is NaN.
     """
-    arrs = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in (
-        nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz,
-        nu_vc_hz)))
+    arrs = np.broadcast_arrays(
+        *(
+            np.asarray(x, dtype=float)
+            for x in (
+                nu_hz,
+                nu0_hz,
+                doppler_hwhm_hz,
+                gamma0_hz,
+                gamma2_hz,
+                delta0_hz,
+                delta2_hz,
+                nu_vc_hz,
+            )
+        )
+    )
     shape = arrs[0].shape
     nu, nu0, gd, g0, g2, d0, d2, nvc = (np.ravel(x) for x in arrs)
     _check_doppler(gd)
-    cte = _SQRT_LN2 / gd                                    # 1/Hz
-    c0t = (g0 - 1.5 * g2 + nvc) + 1j * (d0 - 1.5 * d2)      # Hz
+    cte = _SQRT_LN2 / gd  # 1/Hz
+    c0t = (g0 - 1.5 * g2 + nvc) + 1j * (d0 - 1.5 * d2)  # Hz
     z0 = cte * (c0t - 1j * (nu - nu0))
     kappa = cte * (g2 + 1j * d2)
     # Gamma2 < 0 with Delta2 = 0: as nu varies, 1 + 4 kappa z0 runs parallel to the real axis
@@ -216,7 +244,7 @@ def qsdhcp(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0
     # plane far out and overflows: not covered. NaN in both cases, never a wrong number.
     inside = ~((g2 < 0) & ((d2 != 0) | (1.0 + 4.0 * cte * cte * g2 * c0t.real <= 0)))
     a = np.full_like(z0, np.nan)
-    a[inside] = cte[inside] * _speed_averaged(z0[inside], kappa[inside])      # A, 1/Hz
+    a[inside] = cte[inside] * _speed_averaged(z0[inside], kappa[inside])  # A, 1/Hz
     with np.errstate(invalid="ignore"):
         g = a / (np.pi * (1.0 - nvc * a))
     return g.reshape(shape)
@@ -251,8 +279,7 @@ def voigt(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, delta0_hz=0.0):
     return cte / _SQRT_PI * wofz(z)
 
 
-def sdvoigt(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0.0,
-            delta2_hz=0.0):
+def sdvoigt(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz=0.0, delta0_hz=0.0, delta2_hz=0.0):
     """Quadratic speed-dependent Voigt profile, 1/Hz: the qSDHCP with nu_VC = 0 (Hz inputs)."""
     return qsdhcp(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz, 0.0)
 
@@ -268,8 +295,10 @@ def hard_collision(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, delta0_hz=0.0, nu_
     _check_doppler(doppler_hwhm_hz)
     cte = _SQRT_LN2 / np.asarray(doppler_hwhm_hz, dtype=float)
     nvc = np.asarray(nu_vc_hz, dtype=float)
-    z = cte * ((np.asarray(nu_hz, dtype=float) - nu0_hz - delta0_hz)
-               + 1j * (np.asarray(gamma0_hz, dtype=float) + nvc))
+    z = cte * (
+        (np.asarray(nu_hz, dtype=float) - nu0_hz - delta0_hz)
+        + 1j * (np.asarray(gamma0_hz, dtype=float) + nvc)
+    )
     w = wofz(z)
     return cte / _SQRT_PI * w / (1.0 - _SQRT_PI * cte * nvc * w)
 
@@ -308,18 +337,19 @@ def _call_rautian(nu, nu0, gd, p):
 
 
 def _call_qsdhcp(nu, nu0, gd, p):
-    return qsdhcp(nu, nu0, gd, p["gamma0_hz"], p["gamma2_hz"], p["delta0_hz"], p["delta2_hz"],
-                  p["nu_vc_hz"])
+    return qsdhcp(
+        nu, nu0, gd, p["gamma0_hz"], p["gamma2_hz"], p["delta0_hz"], p["delta2_hz"], p["nu_vc_hz"]
+    )
 
 
 PROFILES: dict[str, ProfileSpec] = {
     "gaussian": ProfileSpec("gaussian", ("delta0_hz",), True, _call_gaussian),
     "lorentzian": ProfileSpec("lorentzian", ("gamma0_hz", "delta0_hz"), False, _call_lorentzian),
     "voigt": ProfileSpec("voigt", ("gamma0_hz", "delta0_hz"), True, _call_voigt),
-    "sdvp": ProfileSpec("sdvp", ("gamma0_hz", "gamma2_hz", "delta0_hz", "delta2_hz"), True,
-                        _call_sdvp),
-    "rautian": ProfileSpec("rautian", ("gamma0_hz", "delta0_hz", "nu_vc_hz"), True,
-                           _call_rautian),
+    "sdvp": ProfileSpec(
+        "sdvp", ("gamma0_hz", "gamma2_hz", "delta0_hz", "delta2_hz"), True, _call_sdvp
+    ),
+    "rautian": ProfileSpec("rautian", ("gamma0_hz", "delta0_hz", "nu_vc_hz"), True, _call_rautian),
     "qsdhcp": ProfileSpec("qsdhcp", SHAPE_PARAMETERS, True, _call_qsdhcp),
 }
 

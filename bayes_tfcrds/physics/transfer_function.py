@@ -1,4 +1,4 @@
-"""Detection-chain transfer function H(f) (letter Eqs. 1-2) and its fit to beat-note data.
+"""Detection-chain transfer function H(f) (letter Eqs. 1-2); the beat-note fit is in fit.beat_note.
 
 Two variants share one parameter set:
 
@@ -14,6 +14,7 @@ ring-down keep their meaning in volts; an overall gain of the chain is absorbed 
 The beat-note fit carries the overall scale as a separate parameter ``scale`` (the letter's
 normalisation: a static nonlinearity of the DC measurements only rescales |H|).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -22,17 +23,17 @@ from functools import lru_cache
 import numpy as np
 from scipy import fft as sfft
 
-
-
-
 PARAM_NAMES = ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r")
 VARIANTS = ("letter", "causal")
 
 
 @dataclass(frozen=True)
 class TFParams:
-    """Parameters of Eq. 2: cutoff f_c (Hz), resonance amplitude A_r, frequency f_r (Hz),
-    quality factor Gamma_r and effective order n_r (dimensionless)."""
+    """Parameters of Eq. 2.
+
+    Cutoff f_c (Hz), resonance amplitude A_r, frequency f_r (Hz), quality factor Gamma_r and
+    effective order n_r (dimensionless).
+    """
 
     f_c_hz: float
     a_r: float = 0.0
@@ -52,7 +53,7 @@ class TFParams:
     def as_vector(self, names=PARAM_NAMES) -> np.ndarray:
         return np.array([getattr(self, n) for n in names], dtype=float)
 
-    def with_vector(self, values, names=PARAM_NAMES) -> "TFParams":
+    def with_vector(self, values, names=PARAM_NAMES) -> TFParams:
         return replace(self, **{n: float(v) for n, v in zip(names, values)})
 
 
@@ -62,11 +63,21 @@ def transfer_function(f_hz, params: TFParams, normalise: bool = True) -> np.ndar
     With ``normalise`` the result is divided by H(0) = 1 + A_r (unit DC gain).
     Negative frequencies return conj(H(|f|)) so that the impulse response is real.
     """
-    return transfer_function_array(f_hz, params.f_c_hz, params.a_r, params.f_r_hz, params.gamma_r, params.n_r,
-                                   params.variant, normalise)
+    return transfer_function_array(
+        f_hz,
+        params.f_c_hz,
+        params.a_r,
+        params.f_r_hz,
+        params.gamma_r,
+        params.n_r,
+        params.variant,
+        normalise,
+    )
 
 
-def transfer_function_array(f_hz, f_c_hz, a_r, f_r_hz, gamma_r, n_r, variant="causal", normalise=True):
+def transfer_function_array(
+    f_hz, f_c_hz, a_r, f_r_hz, gamma_r, n_r, variant="causal", normalise=True
+):
     """Eq. 2 with array-valued parameters that broadcast against ``f_hz`` (Hz).
 
     The samplers evaluate many parameter sets at once (emcee's vectorised walkers): pass
@@ -146,5 +157,3 @@ def settling_times(params: TFParams, dt_s: float, tol: float = 1e-7):
         if max(history, lead) < 0.25 * n * dt_s or n >= (1 << 23):
             return float(max(history, dt_s)), float(max(lead, dt_s))
         n <<= 2
-
-

@@ -1,5 +1,6 @@
-"""The simulator of the whole experiment: campaigns of ring-downs, beat notes and CMDS with a
-known truth and injectable effects.
+"""The simulator of the whole experiment.
+
+Campaigns of ring-downs, beat notes and CMDS with a known truth and injectable effects.
 
 May import: core, output, bundle, physics.
 """

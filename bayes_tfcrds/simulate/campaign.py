@@ -8,8 +8,8 @@ The physics, in the order the light and the signal meet it:
    (t = 0) and decays with 1/tau = c (alpha + alpha_loss) after it; optional transient-level
    optical effects add terms (``second_mode``, ``mode_beating``, ``extinction_tail``).
 3. **Detection chain**: a causal linear filter (the exact rational response of
-   :mod:`bayes_tfcrds.chain`, no FFT), then an optional static nonlinearity, the detector
-   offset (with optional ``baseline_drift``), white noise, and ADC quantisation of every
+   :mod:`bayes_tfcrds.physics.detection_chain`, no FFT), then an optional static nonlinearity, the
+   detector offset (with optional ``baseline_drift``), white noise, and ADC quantisation of every
    acquisition before ``n_avg`` acquisitions are averaged.
 4. **Beat note** of the same chain (same nonlinearity) with its own noise, and **CMDS**
    mode shifts (and widths) whose noise gives the letter's 0.06 % scatter of A_ref.
@@ -17,17 +17,26 @@ The physics, in the order the light and the signal meet it:
 Every random number comes from the ``numpy.random.Generator`` passed in: the same preset,
 effects and seed give the same bytes. Units are SI throughout (Hz, s, V, Pa, K, m).
 """
+
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
-from bayes_tfcrds.bundle.records import Bundle, Cavity, CmdsData, Config, RingdownData, Sample, TransferFunctionData
+from bayes_tfcrds.bundle.records import (
+    Bundle,
+    Cavity,
+    CmdsData,
+    Config,
+    RingdownData,
+    Sample,
+    TransferFunctionData,
+)
+from bayes_tfcrds.core.constants import C, intensity_from_cm_per_molecule, number_density
 from bayes_tfcrds.physics.detection_chain import IDEAL_CHAIN, RationalChain, chain_from_tf
-from bayes_tfcrds.core.constants import C, number_density, intensity_from_cm_per_molecule
-from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
 from bayes_tfcrds.physics.linedata import load_line
+from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
 from bayes_tfcrds.physics.transfer_function import TFParams
 
 # --------------------------------------------------------------------------- effects
@@ -35,27 +44,28 @@ from bayes_tfcrds.physics.transfer_function import TFParams
 EFFECTS = {
     # transient level
     "transfer_function": "the detection chain's frequency response H(f) (the preset's chain); "
-                         "without it the detector is ideal (H = 1)",
-    "static_nonlinearity": "detector output V' = V + beta V^2 / V_ref (kind='quadratic') or "
-                           "V_ref (V/V_ref)^(1+gamma) (kind='power'): the gain depends on the signal "
-                           "level, so the decay looks slower (beta < 0) or faster",
+    "without it the detector is ideal (H = 1)",
+    "static_nonlinearity": "detector output V' = V + beta V^2 / V_ref (kind='quadratic') or V_ref "
+    "(V/V_ref)^(1+gamma) (kind='power'): the gain depends on the signal level, so the decay looks "
+    "slower (beta < 0) or faster",
     "extinction_tail": "the laser is not switched off at once: a fraction `fraction` of the input "
-                       "power remains after t = 0 and decays with `tau_s`, feeding the cavity; the "
-                       "ring-down carries a second exponential exp(-t/tau_s)",
-    "second_mode": "a higher-order transverse mode with a fraction `fraction` of the power and decay "
-                   "time `tau_ratio` x tau is excited too: a weak second exponential",
-    "baseline_drift": "the detector offset drifts linearly, `slope_v_per_s` (V/s), during the transient",
+    "power remains after t = 0 and decays with `tau_s`, feeding the cavity; the ring-down carries "
+    "a second exponential exp(-t/tau_s)",
+    "second_mode": "a higher-order transverse mode with a fraction `fraction` of the power and "
+    "decay time `tau_ratio` x tau is excited too: a weak second exponential",
+    "baseline_drift": "the detector offset drifts linearly, `slope_v_per_s` (V/s), during the "
+    "transient",
     "mode_beating": "two excited modes beat: a sinusoid at `freq_hz` with relative amplitude "
-                    "`fraction`, decaying with tau (it starts at extinction)",
+    "`fraction`, decaying with tau (it starts at extinction)",
     # spectrum level
-    "speed_dependence": "quadratic speed dependence of the collisional width and shift "
-                        "(Gamma2 = `gamma2_ratio` Gamma0, Delta2 = `delta2_ratio` Delta0)",
-    "hard_collisions": "velocity-changing collisions at rate nu_VC = `nu_vc_ratio` Gamma0 "
-                       "(Dicke narrowing, hard-collision model)",
-    "etalon": "a sinusoidal baseline in alpha: `amplitude_per_m` sin(2 pi (nu - nu0)/`period_hz` + "
-              "`phase_rad`), from a parasitic etalon",
-    "neighbour_line": "a weak nearby line at `offset_hz` from the main one, with `intensity_ratio` of "
-                      "its intensity and the same shape parameters",
+    "speed_dependence": "quadratic speed dependence of the collisional width and shift (Gamma2 = "
+    "`gamma2_ratio` Gamma0, Delta2 = `delta2_ratio` Delta0)",
+    "hard_collisions": "velocity-changing collisions at rate nu_VC = `nu_vc_ratio` Gamma0 (Dicke "
+    "narrowing, hard-collision model)",
+    "etalon": "a sinusoidal baseline in alpha: `amplitude_per_m` sin(2 pi (nu - nu0)/`period_hz` "
+    "+ `phase_rad`), from a parasitic etalon",
+    "neighbour_line": "a weak nearby line at `offset_hz` from the main one, with "
+    "`intensity_ratio` of its intensity and the same shape parameters",
 }
 
 EFFECT_DEFAULTS = {
@@ -85,7 +95,9 @@ def parse_effect(text: str):
             raise ValueError(f"effect {name}: expected key=value, got {item!r}")
         key = key.strip()
         if key not in EFFECT_DEFAULTS[name]:
-            raise ValueError(f"effect {name} has no parameter {key!r}; it has {sorted(EFFECT_DEFAULTS[name])}")
+            raise ValueError(
+                f"effect {name} has no parameter {key!r}; it has {sorted(EFFECT_DEFAULTS[name])}"
+            )
         params[key] = value.strip() if key == "kind" else float(value)
     return name, params
 
@@ -100,7 +112,7 @@ class ChainPreset:
     label: str
     description: str
     tf: TFParams
-    noise_v: float = 1.3e-3          # white noise of one acquisition (V); /sqrt(100) = 0.13 mV
+    noise_v: float = 1.3e-3  # white noise of one acquisition (V); /sqrt(100) = 0.13 mV
 
 
 # Calibrated by benchmarks/calibrate_presets.py so that plain CRDS analysis reproduces the
@@ -109,16 +121,28 @@ class ChainPreset:
 # (f_r ~ 5-7 MHz, the ~6 MHz bandwidth). Detector 1 (D1, D2) and detector 2 (D3, D4) each share
 # one tail time; gain 300 (D2, D4) lowers the bandwidth.
 PRESETS = {
-    "letter-D1": ChainPreset("D1", "detector 1 (older), gain 100, NI PCI-5122",
-                             TFParams(f_c_hz=5.257e4, a_r=26.34, f_r_hz=7.0e6, gamma_r=0.7, n_r=2.0)),
-    "letter-D2": ChainPreset("D2", "detector 1 (older), gain 300, NI PCI-5122",
-                             TFParams(f_c_hz=5.257e4, a_r=24.70, f_r_hz=5.0e6, gamma_r=0.7, n_r=2.0)),
-    "letter-D3": ChainPreset("D3", "detector 2 (newer), gain 100, NI PCI-5122",
-                             TFParams(f_c_hz=1.938e4, a_r=19.28, f_r_hz=7.0e6, gamma_r=0.7, n_r=2.0),
-                             noise_v=1.1e-3),
-    "letter-D4": ChainPreset("D4", "detector 2 (newer), gain 300, NI PCI-5122",
-                             TFParams(f_c_hz=1.938e4, a_r=20.33, f_r_hz=5.0e6, gamma_r=0.7, n_r=2.0),
-                             noise_v=1.1e-3),
+    "letter-D1": ChainPreset(
+        "D1",
+        "detector 1 (older), gain 100, NI PCI-5122",
+        TFParams(f_c_hz=5.257e4, a_r=26.34, f_r_hz=7.0e6, gamma_r=0.7, n_r=2.0),
+    ),
+    "letter-D2": ChainPreset(
+        "D2",
+        "detector 1 (older), gain 300, NI PCI-5122",
+        TFParams(f_c_hz=5.257e4, a_r=24.70, f_r_hz=5.0e6, gamma_r=0.7, n_r=2.0),
+    ),
+    "letter-D3": ChainPreset(
+        "D3",
+        "detector 2 (newer), gain 100, NI PCI-5122",
+        TFParams(f_c_hz=1.938e4, a_r=19.28, f_r_hz=7.0e6, gamma_r=0.7, n_r=2.0),
+        noise_v=1.1e-3,
+    ),
+    "letter-D4": ChainPreset(
+        "D4",
+        "detector 2 (newer), gain 300, NI PCI-5122",
+        TFParams(f_c_hz=1.938e4, a_r=20.33, f_r_hz=5.0e6, gamma_r=0.7, n_r=2.0),
+        noise_v=1.1e-3,
+    ),
 }
 
 
@@ -129,27 +153,27 @@ PRESETS = {
 class Campaign:
     """Settings of one simulated measurement (all SI)."""
 
-    pressure_pa: float = 666.6                 # 5 Torr
-    pressure_u_pa: float = 0.333               # 0.05 % capacitance manometer
+    pressure_pa: float = 666.6  # 5 Torr
+    pressure_u_pa: float = 0.333  # 0.05 % capacitance manometer
     temperature_k: float = 296.0
     temperature_u_k: float = 0.03
     fsr_hz: float = 203.0e6
     finesse: float = 41_000.0
     n_points: int = 101
-    span_hz: float = 10.0e9                    # half span of the scan (B-EOM sideband, 20 GHz)
+    span_hz: float = 10.0e9  # half span of the scan (B-EOM sideband, 20 GHz)
     dt_s: float = 20e-9
     n_samples: int = 16384
-    t0_s: float = -2.0e-6                      # first sample relative to extinction
+    t0_s: float = -2.0e-6  # first sample relative to extinction
     n_avg: int = 100
-    amplitude_v: float = 0.6                   # steady pre-extinction signal (threshold trigger)
-    offset_v: float = 2.0e-3                   # detector dark offset
+    amplitude_v: float = 0.6  # steady pre-extinction signal (threshold trigger)
+    offset_v: float = 2.0e-3  # detector dark offset
     adc_bits: int = 14
     adc_range_v: tuple = (-1.0, 1.0)
     beat_f_hz: tuple = (1e3, 4e7)
     beat_points: int = 60
     beat_rel_noise: float = 1.5e-3
     beat_dc_v: tuple = (0.20, 0.25)
-    cmds_area_rel_u: float = 6e-4              # the letter's 0.06 % spread of A_ref
+    cmds_area_rel_u: float = 6e-4  # the letter's 0.06 % spread of A_ref
     cmds_width_u_hz: float = 50.0
     profile: str = "qsdhcp"
 
@@ -180,8 +204,8 @@ class LineTruth:
     """The absorption line the campaign is made from (SI: Hz, Hz/m)."""
 
     nu0_hz: float
-    line_area_hz_per_m: float           # A = S N
-    intensity_cm_per_molecule: float    # S (edge unit, labelled)
+    line_area_hz_per_m: float  # A = S N
+    intensity_cm_per_molecule: float  # S (edge unit, labelled)
     doppler_hwhm_hz: float
     gamma0_hz: float
     gamma2_hz: float
@@ -207,17 +231,33 @@ def line_truth(c: Campaign, effects: dict) -> LineTruth:
         nvc = nvr * g0 if nvr is not None else shape.get("nu_vc_hz", 0.0)
     n = number_density(c.pressure_pa, c.temperature_k)
     s_cm = line.intensity_cm_per_molecule
-    return LineTruth(nu0_hz=line.nu0_hz, line_area_hz_per_m=float(intensity_from_cm_per_molecule(s_cm, n)),
-                     intensity_cm_per_molecule=s_cm,
-                     doppler_hwhm_hz=float(doppler_hwhm_hz(line.nu0_hz, c.temperature_k, line.mass_u)),
-                     gamma0_hz=g0, gamma2_hz=g2, delta0_hz=d0, delta2_hz=d2, nu_vc_hz=nvc,
-                     profile="qsdhcp")
+    return LineTruth(
+        nu0_hz=line.nu0_hz,
+        line_area_hz_per_m=float(intensity_from_cm_per_molecule(s_cm, n)),
+        intensity_cm_per_molecule=s_cm,
+        doppler_hwhm_hz=float(doppler_hwhm_hz(line.nu0_hz, c.temperature_k, line.mass_u)),
+        gamma0_hz=g0,
+        gamma2_hz=g2,
+        delta0_hz=d0,
+        delta2_hz=d2,
+        nu_vc_hz=nvc,
+        profile="qsdhcp",
+    )
 
 
 def complex_profile(nu_hz, lt: LineTruth) -> np.ndarray:
     """g(nu) of the truth line (1/Hz)."""
-    return profile("qsdhcp", nu_hz, lt.nu0_hz, lt.doppler_hwhm_hz, gamma0_hz=lt.gamma0_hz,
-                   gamma2_hz=lt.gamma2_hz, delta0_hz=lt.delta0_hz, delta2_hz=lt.delta2_hz, nu_vc_hz=lt.nu_vc_hz)
+    return profile(
+        "qsdhcp",
+        nu_hz,
+        lt.nu0_hz,
+        lt.doppler_hwhm_hz,
+        gamma0_hz=lt.gamma0_hz,
+        gamma2_hz=lt.gamma2_hz,
+        delta0_hz=lt.delta0_hz,
+        delta2_hz=lt.delta2_hz,
+        nu_vc_hz=lt.nu_vc_hz,
+    )
 
 
 def absorption_truth(nu_hz, lt: LineTruth, effects: dict) -> np.ndarray:
@@ -226,11 +266,14 @@ def absorption_truth(nu_hz, lt: LineTruth, effects: dict) -> np.ndarray:
     if "neighbour_line" in effects:
         e = {**EFFECT_DEFAULTS["neighbour_line"], **effects["neighbour_line"]}
         nb = replace(lt, nu0_hz=lt.nu0_hz + e["offset_hz"])
-        alpha = alpha + e["intensity_ratio"] * lt.line_area_hz_per_m * complex_profile(nu_hz, nb).real
+        alpha = (
+            alpha + e["intensity_ratio"] * lt.line_area_hz_per_m * complex_profile(nu_hz, nb).real
+        )
     if "etalon" in effects:
         e = {**EFFECT_DEFAULTS["etalon"], **effects["etalon"]}
-        alpha = alpha + e["amplitude_per_m"] * np.sin(2 * np.pi * (nu_hz - lt.nu0_hz) / e["period_hz"]
-                                                     + e["phase_rad"])
+        alpha = alpha + e["amplitude_per_m"] * np.sin(
+            2 * np.pi * (nu_hz - lt.nu0_hz) / e["period_hz"] + e["phase_rad"]
+        )
     return alpha
 
 
@@ -240,7 +283,9 @@ def dispersion_shift_truth(nu_hz, lt: LineTruth, effects: dict) -> np.ndarray:
     if "neighbour_line" in effects:
         e = {**EFFECT_DEFAULTS["neighbour_line"], **effects["neighbour_line"]}
         nb = replace(lt, nu0_hz=lt.nu0_hz + e["offset_hz"])
-        shift = shift + e["intensity_ratio"] * C * lt.line_area_hz_per_m * complex_profile(nu_hz, nb).imag / (4 * np.pi)
+        shift = shift + e["intensity_ratio"] * C * lt.line_area_hz_per_m * complex_profile(
+            nu_hz, nb
+        ).imag / (4 * np.pi)
     return shift
 
 
@@ -267,7 +312,9 @@ def _nonlinear_slope(v, effects):
     return (1.0 + e["gamma"]) * np.abs(v / e["v_ref"]) ** e["gamma"]
 
 
-def detected_transients(t_s, tau_s, chain: RationalChain, effects: dict, amplitude_v: float) -> np.ndarray:
+def detected_transients(
+    t_s, tau_s, chain: RationalChain, effects: dict, amplitude_v: float
+) -> np.ndarray:
     """Noise-free detector voltage (before offset, nonlinearity and ADC) for decay times tau (s).
 
     Shape (n_tau, n_samples). Optical terms pass through the exact chain response.
@@ -276,18 +323,25 @@ def detected_transients(t_s, tau_s, chain: RationalChain, effects: dict, amplitu
     y = chain.ringdown_response(t_s, tau)
     if "second_mode" in effects:
         e = {**EFFECT_DEFAULTS["second_mode"], **effects["second_mode"]}
-        y = (1.0 - e["fraction"]) * y + e["fraction"] * chain.ringdown_response(t_s, tau * e["tau_ratio"])
+        y = (1.0 - e["fraction"]) * y + e["fraction"] * chain.ringdown_response(
+            t_s, tau * e["tau_ratio"]
+        )
     if "extinction_tail" in effects:
         e = {**EFFECT_DEFAULTS["extinction_tail"], **effects["extinction_tail"]}
-        # cavity fed by eps exp(-t/tau_x) after t = 0: P += eps tau_x/(tau_x - tau) (e^{-t/tau_x} - e^{-t/tau})
+        # cavity fed by eps exp(-t/tau_x) after t = 0: P += eps tau_x/(tau_x - tau) (e^{-t/tau_x} -
+        # e^{-t/tau})
         tx = e["tau_s"]
         coef = e["fraction"] * tx / (tx - tau)
-        y = y + coef[:, None] * np.real(chain.causal_exponential_response(t_s, np.full(tau.size, -1.0 / tx))
-                                        - chain.causal_exponential_response(t_s, -1.0 / tau))
+        y = y + coef[:, None] * np.real(
+            chain.causal_exponential_response(t_s, np.full(tau.size, -1.0 / tx))
+            - chain.causal_exponential_response(t_s, -1.0 / tau)
+        )
     if "mode_beating" in effects:
         e = {**EFFECT_DEFAULTS["mode_beating"], **effects["mode_beating"]}
         lam = -1.0 / tau + 2j * np.pi * e["freq_hz"]
-        y = y + e["fraction"] * np.real(np.exp(1j * e["phase_rad"]) * chain.causal_exponential_response(t_s, lam))
+        y = y + e["fraction"] * np.real(
+            np.exp(1j * e["phase_rad"]) * chain.causal_exponential_response(t_s, lam)
+        )
     return amplitude_v * y
 
 
@@ -311,14 +365,21 @@ def acquire(clean_v, c: Campaign, noise_v: float, effects: dict, t_s, rng: np.ra
 
 
 def tf_measurement(chain: RationalChain, c: Campaign, effects, rng):
-    """A simulated beat-note measurement of ``chain`` (letter Eq. 1): |H| at the campaign's
-    frequencies with its noise, as the bundle's transfer-function group holds it."""
+    """A simulated beat-note measurement of ``chain`` (letter Eq. 1).
+
+    |H| at the campaign's frequencies with its noise, as the bundle's transfer-function group holds
+    it.
+    """
     f = np.logspace(np.log10(c.beat_f_hz[0]), np.log10(c.beat_f_hz[1]), c.beat_points)
     i1, i2 = c.beat_dc_v
     h = np.abs(chain.frequency_response(f))
     # DC levels measured through the static response; the beat's small-signal gain is its slope
-    i1_m = float(_nonlinear(np.array(i1 + c.offset_v), effects) - _nonlinear(np.array(c.offset_v), effects))
-    i2_m = float(_nonlinear(np.array(i2 + c.offset_v), effects) - _nonlinear(np.array(c.offset_v), effects))
+    i1_m = float(
+        _nonlinear(np.array(i1 + c.offset_v), effects) - _nonlinear(np.array(c.offset_v), effects)
+    )
+    i2_m = float(
+        _nonlinear(np.array(i2 + c.offset_v), effects) - _nonlinear(np.array(c.offset_v), effects)
+    )
     slope = float(_nonlinear_slope(np.array(i1 + i2 + c.offset_v), effects))
     b12 = 2 * np.sqrt(i1 * i2) * h * slope
     u = c.beat_rel_noise * b12
@@ -327,10 +388,15 @@ def tf_measurement(chain: RationalChain, c: Campaign, effects, rng):
 
 
 def cmds_noise(nu_hz, lt, c: Campaign):
-    """Shift noise (Hz) giving u(A_ref)/A_ref = ``cmds_area_rel_u`` in a fit of A, position, Gamma0."""
+    """Shift noise (Hz) giving u(A_ref)/A_ref = ``cmds_area_rel_u``.
+
+    The relative u is that of a fit of A, position and Gamma0.
+    """
+
     def shifts(area, nu0, g0):
         lt2 = replace(lt, line_area_hz_per_m=area, nu0_hz=nu0, gamma0_hz=g0)
         return dispersion_shift_truth(nu_hz, lt2, {})
+
     theta = np.array([lt.line_area_hz_per_m, lt.nu0_hz, lt.gamma0_hz])
     steps = np.array([1e-6 * theta[0], 1e3, 1e-4 * theta[2]])
     jac = np.empty((nu_hz.size, 3))
@@ -339,14 +405,135 @@ def cmds_noise(nu_hz, lt, c: Campaign):
         tp[j] += steps[j]
         tm[j] -= steps[j]
         jac[:, j] = (shifts(*tp) - shifts(*tm)) / (2 * steps[j])
-    cov_unit = np.linalg.inv(jac.T @ jac)       # for unit shift noise
+    cov_unit = np.linalg.inv(jac.T @ jac)  # for unit shift noise
     return c.cmds_area_rel_u * theta[0] / np.sqrt(cov_unit[0, 0])
 
 
-def simulate_campaign(presets, rng: np.random.Generator, campaign: Campaign = Campaign(),
-                      effects: dict | None = None, line_effects_default: bool = True, streams: dict | None = None,
-                      line: LineTruth | None = None, chain_tf: dict | None = None, noise_v: dict | None = None,
-                      description: str | None = None):
+@dataclass(frozen=True)
+class SpectrumTruth:
+    """The true spectrum every configuration of a campaign sees (SI).
+
+    Mode frequencies (Hz), decay times (s), absorption (1/m), empty-cavity loss (1/m), CMDS shifts
+    and widths (Hz), the shift noise (Hz) and the sample times (s).
+    """
+
+    nu_hz: np.ndarray
+    tau_s: np.ndarray
+    alpha_per_m: np.ndarray
+    alpha_loss_per_m: float
+    shift_hz: np.ndarray
+    shift_u_hz: float
+    width_hz: np.ndarray
+    time_s: np.ndarray
+
+
+def spectrum_truth(campaign: Campaign, lt: LineTruth, effects: dict) -> SpectrumTruth:
+    """The true decay times, mode shifts and widths at the campaign's cavity modes."""
+    nu_modes = lt.nu0_hz + spectral_points(campaign)
+    alpha_loss = 1.0 / (C * campaign.finesse / (2 * np.pi * campaign.fsr_hz))
+    alpha = absorption_truth(nu_modes, lt, effects)
+    return SpectrumTruth(
+        nu_hz=nu_modes,
+        tau_s=1.0 / (C * (alpha + alpha_loss)),
+        alpha_per_m=alpha,
+        alpha_loss_per_m=alpha_loss,
+        shift_hz=dispersion_shift_truth(nu_modes, lt, effects),
+        shift_u_hz=cmds_noise(nu_modes, lt, campaign),
+        width_hz=C * (alpha + alpha_loss) / (4 * np.pi),
+        time_s=campaign.t0_s + campaign.dt_s * np.arange(campaign.n_samples),
+    )
+
+
+def record_noise_v(noise_single_v: float, campaign: Campaign) -> float:
+    """Noise (V) of an averaged record.
+
+    Single-acquisition noise and ADC quantisation in quadrature, over sqrt(n_avg).
+    """
+    lsb_term = (
+        (campaign.adc_range_v[1] - campaign.adc_range_v[0]) / 2**campaign.adc_bits / np.sqrt(12)
+    )
+    return np.hypot(noise_single_v, lsb_term) / np.sqrt(campaign.n_avg)
+
+
+def simulate_configuration(
+    pre: ChainPreset,
+    tf: TFParams,
+    noise_single_v: float,
+    campaign: Campaign,
+    effects: dict,
+    truth: SpectrumTruth,
+    streams: tuple,
+) -> Config:
+    """One configuration's ring-downs, beat note and CMDS through the chain ``tf``.
+
+    The chain acts when the transfer-function effect is on; ``streams`` = (ring-down, beat, CMDS)
+    generators.
+    """
+    s_rd, s_beat, s_cmds = streams
+    nu, t = truth.nu_hz, truth.time_s
+    chain = chain_from_tf(tf) if "transfer_function" in effects else IDEAL_CHAIN
+    clean = detected_transients(t, truth.tau_s, chain, effects, campaign.amplitude_v)
+    signal = acquire(clean, campaign, noise_single_v, effects, t, s_rd)
+    rd = RingdownData(
+        nu_hz=nu,
+        signal_v=signal,
+        dt_s=campaign.dt_s,
+        t0_s=campaign.t0_s,
+        n_avg=np.full(nu.size, campaign.n_avg),
+        noise_v=np.full(nu.size, record_noise_v(noise_single_v, campaign)),
+    )
+    tfd = tf_measurement(chain, campaign, effects, s_beat)
+    cm = CmdsData(
+        nu_hz=nu,
+        shift_hz=truth.shift_hz + truth.shift_u_hz * s_cmds.standard_normal(nu.size),
+        shift_u_hz=np.full(nu.size, truth.shift_u_hz),
+        width_hz=truth.width_hz + campaign.cmds_width_u_hz * s_cmds.standard_normal(nu.size),
+        width_u_hz=np.full(nu.size, campaign.cmds_width_u_hz),
+    )
+    return Config(
+        name=pre.label, ringdowns=rd, transfer_function=tfd, cmds=cm, description=pre.description
+    )
+
+
+def simulated_sample(campaign: Campaign, lt: LineTruth) -> Sample:
+    """The bundle's /sample of a simulated campaign (CO (3-0) R(23), pure CO)."""
+    return Sample(
+        molecule="CO",
+        line="(3-0) R(23)",
+        nu0_hz=lt.nu0_hz,
+        pressure_pa=campaign.pressure_pa,
+        pressure_u_pa=campaign.pressure_u_pa,
+        temperature_k=campaign.temperature_k,
+        temperature_u_k=campaign.temperature_u_k,
+        mole_fraction=1.0,
+        mass_u=load_line().mass_u,
+    )
+
+
+def _effects_truth(effects: dict) -> dict:
+    """Each effect's parameters with defaults filled in (None values left out)."""
+    return {
+        k: {
+            kk: (vv if isinstance(vv, str) else float(vv))
+            for kk, vv in {**EFFECT_DEFAULTS[k], **v}.items()
+            if vv is not None
+        }
+        for k, v in effects.items()
+    }
+
+
+def simulate_campaign(
+    presets,
+    rng: np.random.Generator,
+    campaign: Campaign = Campaign(),
+    effects: dict | None = None,
+    line_effects_default: bool = True,
+    streams: dict | None = None,
+    line: LineTruth | None = None,
+    chain_tf: dict | None = None,
+    noise_v: dict | None = None,
+    description: str | None = None,
+):
     """Simulate one campaign: one configuration per preset name (``letter-D1`` ... ``letter-D4``).
 
     ``effects`` maps canonical effect names to parameter dicts (defaults filled in). With
@@ -369,61 +556,41 @@ def simulate_campaign(presets, rng: np.random.Generator, campaign: Campaign = Ca
             effects.setdefault(name, {})
     lt = line_truth(campaign, effects) if line is None else line
     chain_tf, noise_v = dict(chain_tf or {}), dict(noise_v or {})
-    det = spectral_points(campaign)
-    nu_modes = lt.nu0_hz + det
-    alpha_loss = 1.0 / (C * campaign.finesse / (2 * np.pi * campaign.fsr_hz))
-    alpha = absorption_truth(nu_modes, lt, effects)
-    tau = 1.0 / (C * (alpha + alpha_loss))
-    t = campaign.t0_s + campaign.dt_s * np.arange(campaign.n_samples)
-    shift_true = dispersion_shift_truth(nu_modes, lt, effects)
-    shift_u = cmds_noise(nu_modes, lt, campaign)
-    width_true = C * (alpha + alpha_loss) / (4 * np.pi)
-
-    configs = {}
-    truth_cfg = {}
+    truth = spectrum_truth(campaign, lt, effects)
     base = dict(zip(("ringdown", "beat", "cmds"), rng.spawn(3)))
     base.update(streams or {})
     per_config = {k: g.spawn(len(presets)) for k, g in base.items()}
+    configs, truth_cfg = {}, {}
     for ci, name in enumerate(presets):
         if name not in PRESETS:
             raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
         pre = PRESETS[name]
         tf = chain_tf.get(name, pre.tf)
         noise_single = noise_v.get(name, pre.noise_v)
-        chain = chain_from_tf(tf) if "transfer_function" in effects else IDEAL_CHAIN
-        clean = detected_transients(t, tau, chain, effects, campaign.amplitude_v)
-        signal = acquire(clean, campaign, noise_single, effects, t, per_config["ringdown"][ci])
-        noise = np.full(nu_modes.size, np.hypot(noise_single, (campaign.adc_range_v[1] - campaign.adc_range_v[0])
-                                                 / 2**campaign.adc_bits / np.sqrt(12)) / np.sqrt(campaign.n_avg))
-        rd = RingdownData(nu_hz=nu_modes, signal_v=signal, dt_s=campaign.dt_s, t0_s=campaign.t0_s,
-                          n_avg=np.full(nu_modes.size, campaign.n_avg), noise_v=noise)
-        tfd = tf_measurement(chain, campaign, effects, per_config["beat"][ci])
-        rc = per_config["cmds"][ci]
-        cm = CmdsData(nu_hz=nu_modes, shift_hz=shift_true + shift_u * rc.standard_normal(nu_modes.size),
-                      shift_u_hz=np.full(nu_modes.size, shift_u),
-                      width_hz=width_true + campaign.cmds_width_u_hz * rc.standard_normal(nu_modes.size),
-                      width_u_hz=np.full(nu_modes.size, campaign.cmds_width_u_hz))
-        configs[pre.label] = Config(name=pre.label, ringdowns=rd, transfer_function=tfd, cmds=cm,
-                                    description=pre.description)
-        truth_cfg[pre.label] = {"preset": name, "tau_s": tau, "alpha_per_m": alpha,
-                                **{k: float(v) for k, v in asdict(tf).items() if k != "variant"},
-                                "chain_variant": tf.variant,
-                                "chain_active": int("transfer_function" in effects),
-                                "noise_v_single": noise_single}
-    line = load_line()
-    sample = Sample(molecule="CO", line="(3-0) R(23)", nu0_hz=lt.nu0_hz, pressure_pa=campaign.pressure_pa,
-                    pressure_u_pa=campaign.pressure_u_pa, temperature_k=campaign.temperature_k,
-                    temperature_u_k=campaign.temperature_u_k, mole_fraction=1.0, mass_u=line.mass_u)
-    bundle = Bundle(sample=sample, cavity=Cavity(fsr_hz=campaign.fsr_hz, finesse=campaign.finesse),
-                    configs=configs,
-                    description=description or "simulated by bayes-tfcrds: " + ", ".join(presets))
-    truth = {
+        streams_ci = tuple(per_config[k][ci] for k in ("ringdown", "beat", "cmds"))
+        configs[pre.label] = simulate_configuration(
+            pre, tf, noise_single, campaign, effects, truth, streams_ci
+        )
+        truth_cfg[pre.label] = {
+            "preset": name,
+            "tau_s": truth.tau_s,
+            "alpha_per_m": truth.alpha_per_m,
+            **{k: float(v) for k, v in asdict(tf).items() if k != "variant"},
+            "chain_variant": tf.variant,
+            "chain_active": int("transfer_function" in effects),
+            "noise_v_single": noise_single,
+        }
+    bundle = Bundle(
+        sample=simulated_sample(campaign, lt),
+        cavity=Cavity(fsr_hz=campaign.fsr_hz, finesse=campaign.finesse),
+        configs=configs,
+        description=description or "simulated by bayes-tfcrds: " + ", ".join(presets),
+    )
+    truth_dict = {
         "line": {k: (float(v) if not isinstance(v, str) else v) for k, v in asdict(lt).items()},
-        "alpha_loss_per_m": float(alpha_loss),
-        "effects": {k: {kk: (vv if isinstance(vv, str) else float(vv))
-                        for kk, vv in {**EFFECT_DEFAULTS[k], **v}.items() if vv is not None}
-                    for k, v in effects.items()},
+        "alpha_loss_per_m": float(truth.alpha_loss_per_m),
+        "effects": _effects_truth(effects),
         "effects_on": ",".join(sorted(effects)),
         "configs": truth_cfg,
     }
-    return bundle, truth
+    return bundle, truth_dict

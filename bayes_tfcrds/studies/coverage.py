@@ -1,4 +1,4 @@
-"""Simulation-based calibration: does the budget's stated uncertainty cover the truth as often as it says?
+"""Simulation-based calibration: does the stated uncertainty cover the truth as often as it says.
 
 Many reduced-size campaigns are simulated, each from parameters drawn from the distribution
 :class:`TruthDistribution` states, and the full budget pipeline (:func:`run_budget`) runs on
@@ -9,7 +9,7 @@ the truth (the normalised rank of the truth among posterior draws; uniform if th
 calibrated, Talts et al. 2018, arXiv:1804.06788).
 
 Prior and truth distribution. SBC needs the truth drawn from the analysis prior. The analysis
-priors here are all flat or log-flat on wide physical bounds (posterior.py: A > 0,
+priors here are all flat or log-flat on wide physical bounds (inference/posteriors.py: A > 0,
 0 <= Gamma2 <= 2/3 Gamma0, nu_VC >= 0; log-uniform f_c, f_r, Gamma_r over 1 Hz to 10 GHz), and the
 Laplace posterior uses none: no prior is informative, so truths are drawn inside the bounds from
 physically sensible ranges, and the check is frequentist coverage averaged over those truths.
@@ -18,10 +18,8 @@ Each campaign is an independent task whose random numbers come from
 ``SeedSequence(seed, spawn_key=(index,))`` alone, so results do not depend on the worker count;
 each writes one small JSON file, and a rerun skips the campaigns already done.
 """
-from __future__ import annotations
 
-from bayes_tfcrds.output.files import atomic_write_text
-from bayes_tfcrds.output.plotting import pyplot
+from __future__ import annotations
 
 import hashlib
 import json
@@ -32,16 +30,30 @@ import numpy as np
 from scipy import stats
 
 from bayes_tfcrds.core.constants import intensity_from_cm_per_molecule, number_density
-from bayes_tfcrds.physics.linedata import load_line
-from bayes_tfcrds.simulate.campaign import PRESETS, Campaign, LineTruth, line_truth, simulate_campaign
+from bayes_tfcrds.output.files import atomic_write_text
+from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.output.report import git_commit
+from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.transfer_function import TFParams
+from bayes_tfcrds.simulate.campaign import (
+    PRESETS,
+    Campaign,
+    LineTruth,
+    line_truth,
+    simulate_campaign,
+)
 
 LEVELS = (0.68, 0.95)
-Z = {p: float(stats.norm.ppf(0.5 + p / 2)) for p in LEVELS}      # 0.994, 1.960
+Z = {p: float(stats.norm.ppf(0.5 + p / 2)) for p in LEVELS}  # 0.994, 1.960
 QUANTITIES = ("A", "A/A_ref", "tau_centre", "f_c")
-LABELS = {"A": "line area A", "A/A_ref": "A/A_ref", "tau_centre": "line-centre tau", "f_c": "H cutoff f_c",
-          "A (u_c)": "A, full GUM u_c", "A/A_ref (u_c)": "A/A_ref, full GUM u_c"}
+LABELS = {
+    "A": "line area A",
+    "A/A_ref": "A/A_ref",
+    "tau_centre": "line-centre tau",
+    "f_c": "H cutoff f_c",
+    "A (u_c)": "A, full GUM u_c",
+    "A/A_ref (u_c)": "A/A_ref, full GUM u_c",
+}
 RECORD_VERSION = 1
 
 
@@ -69,15 +81,23 @@ class TruthDistribution:
 
     def describe(self) -> list:
         """(parameter, distribution) rows for the report."""
-        u = lambda r: f"U({r[0]:g}, {r[1]:g})"      # noqa: E731
-        return [("line intensity S", f"S_ref x {u(self.intensity_factor)}, S_ref = 8.0603e-25 cm/molecule"),
-                ("pressure p (Pa)", u(self.pressure_pa)),
-                ("Gamma0", f"(line data at p) x {u(self.gamma0_factor)}"),
-                ("Gamma2/Gamma0", u(self.gamma2_ratio)), ("nu_VC/Gamma0", u(self.nu_vc_ratio)),
-                ("base chain", "uniform over the study's presets"),
-                ("f_c", f"preset f_c x logU({self.f_c_factor[0]:g}, {self.f_c_factor[1]:g})"),
-                ("A_r", f"preset A_r x {u(self.a_r_factor)}"), ("f_r (Hz)", u(self.f_r_hz)),
-                ("Gamma_r", u(self.gamma_r)), ("noise per acquisition", f"preset noise x {u(self.noise_factor)}")]
+        u = lambda r: f"U({r[0]:g}, {r[1]:g})"  # noqa: E731
+        return [
+            (
+                "line intensity S",
+                f"S_ref x {u(self.intensity_factor)}, S_ref = 8.0603e-25 cm/molecule",
+            ),
+            ("pressure p (Pa)", u(self.pressure_pa)),
+            ("Gamma0", f"(line data at p) x {u(self.gamma0_factor)}"),
+            ("Gamma2/Gamma0", u(self.gamma2_ratio)),
+            ("nu_VC/Gamma0", u(self.nu_vc_ratio)),
+            ("base chain", "uniform over the study's presets"),
+            ("f_c", f"preset f_c x logU({self.f_c_factor[0]:g}, {self.f_c_factor[1]:g})"),
+            ("A_r", f"preset A_r x {u(self.a_r_factor)}"),
+            ("f_r (Hz)", u(self.f_r_hz)),
+            ("Gamma_r", u(self.gamma_r)),
+            ("noise per acquisition", f"preset noise x {u(self.noise_factor)}"),
+        ]
 
 
 @dataclass(frozen=True)
@@ -94,51 +114,94 @@ class CampaignDraw:
     noise_v: float
 
 
-def draw_truth(rng: np.random.Generator, presets, dist: TruthDistribution = TruthDistribution()) -> CampaignDraw:
+def draw_truth(
+    rng: np.random.Generator, presets, dist: TruthDistribution = TruthDistribution()
+) -> CampaignDraw:
     """Draw one campaign's truth from ``dist`` (see :class:`TruthDistribution`)."""
     line = load_line()
     preset = str(presets[int(rng.integers(len(presets)))])
     base = PRESETS[preset]
-    uni = lambda r: float(rng.uniform(*r))        # noqa: E731
+    uni = lambda r: float(rng.uniform(*r))  # noqa: E731
     s = line.intensity_cm_per_molecule * uni(dist.intensity_factor)
     p = uni(dist.pressure_pa)
     g0f, g2r, nvr = uni(dist.gamma0_factor), uni(dist.gamma2_ratio), uni(dist.nu_vc_ratio)
     f_c = base.tf.f_c_hz * float(np.exp(rng.uniform(*np.log(dist.f_c_factor))))
-    tf = replace(base.tf, f_c_hz=f_c, a_r=base.tf.a_r * uni(dist.a_r_factor), f_r_hz=uni(dist.f_r_hz),
-                 gamma_r=uni(dist.gamma_r))
-    return CampaignDraw(preset=preset, intensity_cm_per_molecule=s, pressure_pa=p, gamma0_factor=g0f,
-                        gamma2_ratio=g2r, nu_vc_ratio=nvr, tf=tf, noise_v=base.noise_v * uni(dist.noise_factor))
+    tf = replace(
+        base.tf,
+        f_c_hz=f_c,
+        a_r=base.tf.a_r * uni(dist.a_r_factor),
+        f_r_hz=uni(dist.f_r_hz),
+        gamma_r=uni(dist.gamma_r),
+    )
+    return CampaignDraw(
+        preset=preset,
+        intensity_cm_per_molecule=s,
+        pressure_pa=p,
+        gamma0_factor=g0f,
+        gamma2_ratio=g2r,
+        nu_vc_ratio=nvr,
+        tf=tf,
+        noise_v=base.noise_v * uni(dist.noise_factor),
+    )
 
 
 def preset_draw(preset: str, campaign: Campaign = Campaign()) -> CampaignDraw:
     """The draw that reproduces ``simulate_campaign([preset])`` (letter line data, preset chain)."""
     line = load_line()
     shape = line.shape_at(campaign.pressure_pa, campaign.temperature_k)
-    return CampaignDraw(preset=preset, intensity_cm_per_molecule=line.intensity_cm_per_molecule,
-                        pressure_pa=campaign.pressure_pa, gamma0_factor=1.0, gamma2_ratio=line.gamma2_ratio,
-                        nu_vc_ratio=shape["nu_vc_hz"] / shape["gamma0_hz"], tf=PRESETS[preset].tf,
-                        noise_v=PRESETS[preset].noise_v)
+    return CampaignDraw(
+        preset=preset,
+        intensity_cm_per_molecule=line.intensity_cm_per_molecule,
+        pressure_pa=campaign.pressure_pa,
+        gamma0_factor=1.0,
+        gamma2_ratio=line.gamma2_ratio,
+        nu_vc_ratio=shape["nu_vc_hz"] / shape["gamma0_hz"],
+        tf=PRESETS[preset].tf,
+        noise_v=PRESETS[preset].noise_v,
+    )
 
 
 def drawn_line(draw: CampaignDraw, campaign: Campaign) -> LineTruth:
-    """The letter's line (speed dependence and hard collisions on) with the drawn Gamma0 scale,
-    Gamma2/Gamma0, nu_VC/Gamma0 and intensity, at the campaign's pressure."""
+    """The letter's line (speed dependence and hard collisions on) with the drawn parameters.
+
+    The drawn Gamma0 scale, Gamma2/Gamma0, nu_VC/Gamma0 and intensity, at the campaign's pressure.
+    """
     lt0 = line_truth(campaign, {"speed_dependence": {}, "hard_collisions": {}})
     g0 = lt0.gamma0_hz * draw.gamma0_factor
-    area = float(intensity_from_cm_per_molecule(draw.intensity_cm_per_molecule,
-                                                number_density(campaign.pressure_pa, campaign.temperature_k)))
-    return replace(lt0, gamma0_hz=g0, gamma2_hz=draw.gamma2_ratio * g0, nu_vc_hz=draw.nu_vc_ratio * g0,
-                   line_area_hz_per_m=area, intensity_cm_per_molecule=draw.intensity_cm_per_molecule)
+    area = float(
+        intensity_from_cm_per_molecule(
+            draw.intensity_cm_per_molecule,
+            number_density(campaign.pressure_pa, campaign.temperature_k),
+        )
+    )
+    return replace(
+        lt0,
+        gamma0_hz=g0,
+        gamma2_hz=draw.gamma2_ratio * g0,
+        nu_vc_hz=draw.nu_vc_ratio * g0,
+        line_area_hz_per_m=area,
+        intensity_cm_per_molecule=draw.intensity_cm_per_molecule,
+    )
 
 
 def simulate_draw(draw: CampaignDraw, rng: np.random.Generator, campaign: Campaign = Campaign()):
-    """One-configuration campaign with the drawn truth: :func:`simulate_campaign` for the draw's
-    base preset, with the drawn line, chain and noise. Returns ``(Bundle, truth_dict)`` like it."""
+    """One-configuration campaign with the drawn truth.
+
+    :func:`simulate_campaign` for the draw's base preset, with the drawn line, chain and noise.
+    Returns ``(Bundle, truth_dict)`` like it.
+    """
     camp = replace(campaign, pressure_pa=draw.pressure_pa)
-    return simulate_campaign([draw.preset], rng, camp, {"transfer_function": {}}, line_effects_default=False,
-                             line=drawn_line(draw, camp), chain_tf={draw.preset: draw.tf},
-                             noise_v={draw.preset: draw.noise_v},
-                             description=f"simulation-based calibration draw (base {draw.preset})")
+    return simulate_campaign(
+        [draw.preset],
+        rng,
+        camp,
+        {"transfer_function": {}},
+        line_effects_default=False,
+        line=drawn_line(draw, camp),
+        chain_tf={draw.preset: draw.tf},
+        noise_v={draw.preset: draw.noise_v},
+        description=f"simulation-based calibration draw (base {draw.preset})",
+    )
 
 
 # ----------------------------------------------------------------------------- one campaign
@@ -146,23 +209,36 @@ def simulate_draw(draw: CampaignDraw, rng: np.random.Generator, campaign: Campai
 
 def _entry(truth, estimate, u, cdf):
     z = (truth - estimate) / u if u > 0 else float("nan")
-    return {"truth": float(truth), "estimate": float(estimate), "u": float(u), "pull": float(z),
-            "cdf": float(cdf), **{f"in{int(100 * p)}": bool(abs(z) < Z[p]) for p in LEVELS}}
+    return {
+        "truth": float(truth),
+        "estimate": float(estimate),
+        "u": float(u),
+        "pull": float(z),
+        "cdf": float(cdf),
+        **{f"in{int(100 * p)}": bool(abs(z) < Z[p]) for p in LEVELS},
+    }
 
 
 def _from_draws(truth, estimate, draws):
-    """Entry with u = sd of the posterior draws and the CDF of the draws at the truth (the normalised rank)."""
+    """Entry with u = sd of the posterior draws and their CDF at the truth (the normalised rank)."""
     d = np.asarray(draws, float)
     return _entry(truth, estimate, float(np.std(d)), float(np.mean(d < truth)))
 
 
 def _gaussian(truth, estimate, u):
-    """Entry for a Gaussian result N(estimate, u^2): its CDF at the truth is the rank in the limit of many draws."""
-    return _entry(truth, estimate, u, float(stats.norm.cdf((truth - estimate) / u)) if u > 0 else float("nan"))
+    """Entry for a Gaussian result N(estimate, u^2).
+
+    Its CDF at the truth is the rank in the limit of many draws.
+    """
+    return _entry(
+        truth, estimate, u, float(stats.norm.cdf((truth - estimate) / u)) if u > 0 else float("nan")
+    )
 
 
 def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
-    """Run the budget on a one-configuration bundle and compare A, A/A_ref, line-centre tau and f_c with the truth.
+    """Run the budget on a one-configuration bundle and compare its results with the truth.
+
+    The quantities are A, A/A_ref, the line-centre tau and f_c.
 
     A, A/A_ref and f_c use the posterior draws the budget made (A: ring-down noise and H; A_ref:
     CMDS); line-centre tau is Gaussian (fit u and H, first order). The ``(u_c)`` entries use the
@@ -170,10 +246,14 @@ def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
     """
     from bayes_tfcrds.fit.h_calibration import BEAT_FREE
     from bayes_tfcrds.uncertainty.line_budget import run_budget
+
     cfg = next(iter(bundle.configs.values()))
     res = run_budget(bundle, cfg, options, rng)
     s = res.summary
-    out = {"status": s["status"], "diagnostics": {k: v for k, v in s["diagnostics"].items() if k != "runs"}}
+    out = {
+        "status": s["status"],
+        "diagnostics": {k: v for k, v in s["diagnostics"].items() if k != "runs"},
+    }
     if s["status"] != "ok":
         return out
     a_true = truth["line"]["line_area_hz_per_m"]
@@ -181,10 +261,14 @@ def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
     a_hat = s["line_area"]["value_si"]
     # independent pairing of the A and A_ref posteriors (separate measurements)
     ratio_draws = a_tot / a_ref[rng.permutation(a_ref.size)[np.arange(a_tot.size) % a_ref.size]]
-    q = {"A": _from_draws(a_true, a_hat, a_tot),
-         "A/A_ref": _from_draws(1.0, s["ratio"]["value"], ratio_draws),   # CMDS measures the same line: truth 1
-         "A (u_c)": _gaussian(a_true, a_hat, s["line_area"]["u_si"]),
-         "A/A_ref (u_c)": _gaussian(1.0, s["ratio"]["value"], s["ratio"]["u"])}
+    q = {
+        "A": _from_draws(a_true, a_hat, a_tot),
+        "A/A_ref": _from_draws(
+            1.0, s["ratio"]["value"], ratio_draws
+        ),  # CMDS measures the same line: truth 1
+        "A (u_c)": _gaussian(a_true, a_hat, s["line_area"]["u_si"]),
+        "A/A_ref (u_c)": _gaussian(1.0, s["ratio"]["value"], s["ratio"]["u"]),
+    }
     rows = [r for r in res.tau_table if np.isclose(r[1], options.t_cut_s)]
     nu = np.array([r[0] for r in rows])
     k = int(np.argmin(np.abs(nu - bundle.sample.nu0_hz)))
@@ -192,8 +276,11 @@ def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
     i_true = int(np.argmin(np.abs(np.asarray(cfg.ringdowns.nu_hz) - nu[k])))
     q["tau_centre"] = _gaussian(tau_true_all[i_true], rows[k][2], rows[k][5])
     ifc = BEAT_FREE.index("f_c_hz")
-    q["f_c"] = _from_draws(next(iter(truth["configs"].values()))["f_c_hz"], s["transfer_function"]["f_c_hz"],
-                           res.samples["h_draws"][:, ifc])
+    q["f_c"] = _from_draws(
+        next(iter(truth["configs"].values()))["f_c_hz"],
+        s["transfer_function"]["f_c_hz"],
+        res.samples["h_draws"][:, ifc],
+    )
     out["quantities"] = q
     out["detuning_centre_hz"] = float(nu[k] - bundle.sample.nu0_hz)
     return out
@@ -205,37 +292,58 @@ class CoverageSettings:
 
     seed: int
     campaign: Campaign
-    options: object                       # BudgetOptions
+    options: object  # BudgetOptions
     presets: tuple
     dist: TruthDistribution = TruthDistribution()
 
     def fingerprint(self) -> str:
-        text = json.dumps([RECORD_VERSION, self.seed, asdict(self.campaign), asdict(self.options), list(self.presets),
-                           asdict(self.dist)], sort_keys=True, default=str)
+        text = json.dumps(
+            [
+                RECORD_VERSION,
+                self.seed,
+                asdict(self.campaign),
+                asdict(self.options),
+                list(self.presets),
+                asdict(self.dist),
+            ],
+            sort_keys=True,
+            default=str,
+        )
         return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def run_campaign(settings: CoverageSettings, index: int) -> dict:
-    """Draw, simulate and analyse campaign ``index``; its numbers depend on (settings, index) only."""
+    """Draw, simulate and analyse campaign ``index``; its numbers depend on (settings, index)."""
     ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
     g_draw, g_sim, g_fit = (np.random.default_rng(c) for c in ss.spawn(3))
     draw = draw_truth(g_draw, settings.presets, settings.dist)
     bundle, truth = simulate_draw(draw, g_sim, settings.campaign)
-    rec = {"index": index, "fingerprint": settings.fingerprint(), "posterior": settings.options.posterior,
-           "draw": {**{k: v for k, v in asdict(draw).items() if k != "tf"},
-                    **{f"tf_{k}": v for k, v in asdict(draw.tf).items()}},
-           "line_area_true_hz_per_m": truth["line"]["line_area_hz_per_m"], "code": git_commit()}
+    rec = {
+        "index": index,
+        "fingerprint": settings.fingerprint(),
+        "posterior": settings.options.posterior,
+        "draw": {
+            **{k: v for k, v in asdict(draw).items() if k != "tf"},
+            **{f"tf_{k}": v for k, v in asdict(draw.tf).items()},
+        },
+        "line_area_true_hz_per_m": truth["line"]["line_area_hz_per_m"],
+        "code": git_commit(),
+    }
     try:
         rec.update(analyse_campaign(bundle, truth, settings.options, g_fit))
-    except Exception as exc:          # a campaign the pipeline cannot analyse is counted, never dropped
+    except Exception as exc:  # a campaign the pipeline cannot analyse is counted, never dropped
         import traceback
-        where = [f"{Path(f.filename).name}:{f.lineno} {f.name}" for f in traceback.extract_tb(exc.__traceback__)[-4:]]
+
+        where = [
+            f"{Path(f.filename).name}:{f.lineno} {f.name}"
+            for f in traceback.extract_tb(exc.__traceback__)[-4:]
+        ]
         rec.update({"status": f"error: {type(exc).__name__}: {exc}", "trace": where})
     return rec
 
 
 def campaign_task(args) -> dict:
-    """Pool task: campaign ``index``, read from OUTDIR/campaigns if already done, else run and stored."""
+    """Pool task: campaign ``index``, read from OUTDIR/campaigns if done, else run and stored."""
     settings, index, folder = args
     path = Path(folder) / f"c{index:04d}_{settings.options.posterior}.json"
     if path.exists():
@@ -244,27 +352,32 @@ def campaign_task(args) -> dict:
             if rec.get("fingerprint") == settings.fingerprint():
                 return rec
         except (json.JSONDecodeError, OSError):
-            pass                                   # unreadable: run again
+            pass  # unreadable: run again
     rec = run_campaign(settings, index)
     atomic_write_text(path, json.dumps(rec, indent=1, default=float) + "\n")
     return rec
 
 
-def run_campaigns(settings: CoverageSettings, indices, folder, pool=None, progress=False, label="campaigns") -> list:
-    """All campaign records (ordered by index), through ``pool`` when given; finished ones are reused."""
+def run_campaigns(
+    settings: CoverageSettings, indices, folder, pool=None, progress=False, label="campaigns"
+) -> list:
+    """All campaign records (by index), through ``pool`` when given; finished ones are reused."""
     jobs = [(settings, int(i), str(folder)) for i in indices]
     if pool is None:
         it = jobs
         if progress:
             from tqdm import tqdm
+
             it = tqdm(jobs, desc=label)
         recs = [campaign_task(j) for j in it]
     else:
         from concurrent.futures import as_completed
+
         futs = [pool.submit(campaign_task, j) for j in jobs]
         it = as_completed(futs)
         if progress:
             from tqdm import tqdm
+
             it = tqdm(it, total=len(futs), desc=label)
         for _ in it:
             pass
@@ -281,7 +394,9 @@ def binomial_se(p: float, n: int) -> float:
 
 
 def summarise(records, quantity: str, u_scale: float = 1.0, bins: int = 10) -> dict:
-    """Coverage of the 68 % and 95 % intervals, rank histogram and its chi-square test for one quantity.
+    """Coverage of the 68 % and 95 % intervals and the rank histogram of one quantity.
+
+    The rank histogram comes with its chi-square test of uniformity.
 
     ``u_scale`` rescales every stated u (and, Gaussian-approximated, the posterior) to show
     how the checks react to a mis-stated uncertainty.
@@ -302,46 +417,69 @@ def summarise(records, quantity: str, u_scale: float = 1.0, bins: int = 10) -> d
     counts = np.histogram(np.clip(cdf, 0, 1), bins=bins, range=(0, 1))[0]
     expected = n / bins
     chi2 = float(np.sum((counts - expected) ** 2 / expected)) if n else float("nan")
-    out.update({"rank_counts": counts.tolist(), "rank_chi2": chi2, "rank_dof": bins - 1,
-                "rank_p": float(stats.chi2.sf(chi2, bins - 1)),
-                "mean_pull": float(np.mean(pulls)), "sd_pull": float(np.std(pulls, ddof=1)) if n > 1 else float("nan"),
-                "median_pull": float(np.median(pulls)) if n else float("nan"), "robust_sd_pull": robust_sd(pulls)})
+    out.update(
+        {
+            "rank_counts": counts.tolist(),
+            "rank_chi2": chi2,
+            "rank_dof": bins - 1,
+            "rank_p": float(stats.chi2.sf(chi2, bins - 1)),
+            "mean_pull": float(np.mean(pulls)),
+            "sd_pull": float(np.std(pulls, ddof=1)) if n > 1 else float("nan"),
+            "median_pull": float(np.median(pulls)) if n else float("nan"),
+            "robust_sd_pull": robust_sd(pulls),
+        }
+    )
     return out
 
 
 def beat_note_mode(settings: CoverageSettings, index: int) -> dict:
-    """Re-simulate campaign ``index`` and refit its beat note: A_r as fitted, and the fit started at the truth.
+    """Re-simulate campaign ``index`` and refit its beat note.
+
+    Gives A_r as fitted, and the fit started at the truth.
 
     |H| alone cannot tell A_r from its mirror -A_r/(1 + 2 A_r): both give the same gain above f_c
     and nearly the same |H| near it, so a fit may land on the mirror; the ring-downs (which see
     the phase) then disagree with it. This says whether that happened to a campaign.
     """
-    from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit
     from bayes_tfcrds.fit.beat_note import fit_beat_note
+    from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit
+
     ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
     g_draw, g_sim, _ = (np.random.default_rng(c) for c in ss.spawn(3))
     draw = draw_truth(g_draw, settings.presets, settings.dist)
     bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
     cfg = next(iter(bundle.configs.values()))
     fit = beat_note_fit(cfg, free=BEAT_FREE)
-    at_truth = fit_beat_note(cfg.transfer_function, variant=fit.params.variant, free=BEAT_FREE, start=draw.tf)
-    return {"a_r_true": draw.tf.a_r, "a_r_fit": fit.params.a_r, "chi2_fit": float(fit.chi2),
-            "a_r_from_truth": at_truth.params.a_r, "chi2_from_truth": float(at_truth.chi2),
-            "mirror": bool(np.sign(fit.params.a_r) != np.sign(draw.tf.a_r))}
+    at_truth = fit_beat_note(
+        cfg.transfer_function, variant=fit.params.variant, free=BEAT_FREE, start=draw.tf
+    )
+    return {
+        "a_r_true": draw.tf.a_r,
+        "a_r_fit": fit.params.a_r,
+        "chi2_fit": float(fit.chi2),
+        "a_r_from_truth": at_truth.params.a_r,
+        "chi2_from_truth": float(at_truth.chi2),
+        "mirror": bool(np.sign(fit.params.a_r) != np.sign(draw.tf.a_r)),
+    }
 
 
 def robust_sd(x) -> float:
-    """1.4826 x the median absolute deviation: the sd for Gaussian data, blind to a few gross outliers."""
+    """1.4826 x the median absolute deviation: the sd of Gaussian data, blind to gross outliers."""
     x = np.asarray(x, float)
     return float(1.4826 * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
 
 
 def check(summary: dict, k_sigma: float = 3.0, alpha: float = 0.01) -> dict:
-    """Pass/fail of one quantity: each coverage within ``k_sigma`` binomial sd of nominal, ranks uniform at ``alpha``."""
+    """Pass/fail of one quantity.
+
+    Each coverage within ``k_sigma`` binomial sd of nominal, ranks uniform at level ``alpha``.
+    """
     res = {}
     for p in LEVELS:
         key = int(100 * p)
-        res[f"coverage_{key}"] = abs(summary[f"coverage_{key}"] - p) <= k_sigma * summary[f"se_nominal_{key}"]
+        res[f"coverage_{key}"] = (
+            abs(summary[f"coverage_{key}"] - p) <= k_sigma * summary[f"se_nominal_{key}"]
+        )
     res["ranks_uniform"] = summary["rank_p"] > alpha
     return res
 
@@ -351,11 +489,21 @@ def check(summary: dict, k_sigma: float = 3.0, alpha: float = 0.01) -> dict:
 
 def settings_of(study) -> CoverageSettings:
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
+
     camp = replace(Campaign(), n_points=study.points, n_samples=study.samples, n_avg=study.averages)
-    opts = replace(BudgetOptions(), posterior=study.posterior, t_cut_s=study.t_cut_s,
-                   t_cuts_s=tuple(sorted(set(study.t_cuts_s))), profile=study.profile, window=study.windows[0],
-                   n_steps=study.mcmc_steps, max_steps=max(8 * study.mcmc_steps, 24000))
-    return CoverageSettings(seed=study.seed, campaign=camp, options=opts, presets=tuple(study.presets))
+    opts = replace(
+        BudgetOptions(),
+        posterior=study.posterior,
+        t_cut_s=study.t_cut_s,
+        t_cuts_s=tuple(sorted(set(study.t_cuts_s))),
+        profile=study.profile,
+        window=study.windows[0],
+        n_steps=study.mcmc_steps,
+        max_steps=max(8 * study.mcmc_steps, 24000),
+    )
+    return CoverageSettings(
+        seed=study.seed, campaign=camp, options=opts, presets=tuple(study.presets)
+    )
 
 
 def _rank_figure(rep, sums, n, title):
@@ -366,8 +514,15 @@ def _rank_figure(rep, sums, n, title):
         s = sums[k]
         b = s["bins"]
         lo, hi = stats.binom.ppf([0.005, 0.995], s["n"], 1 / b)
-        ax.bar((np.arange(b) + 0.5) / b, s["rank_counts"], width=1 / b, color="tab:blue", alpha=0.55,
-               edgecolor="k", lw=0.4)
+        ax.bar(
+            (np.arange(b) + 0.5) / b,
+            s["rank_counts"],
+            width=1 / b,
+            color="tab:blue",
+            alpha=0.55,
+            edgecolor="k",
+            lw=0.4,
+        )
         ax.axhspan(lo, hi, color="0.5", alpha=0.3, zorder=3, label="99 % band, uniform")
         ax.axhline(s["n"] / b, color="0.2", lw=0.8, zorder=3)
         ax.set_title(f"{LABELS[k]}\nchi2 p = {s['rank_p']:.2f}", fontsize=8)
@@ -377,10 +532,13 @@ def _rank_figure(rep, sums, n, title):
     np.atleast_1d(axes)[0].legend(fontsize=6, loc="lower left")
     fig.suptitle(title, fontsize=9)
     fig.tight_layout()
-    rep.add_figure(fig, f"Rank histograms over {n} campaigns: the posterior CDF at the truth, in "
-                        f"{sums[keys[0]]['bins']} bins. Calibrated posteriors give a flat histogram; grey: where "
-                        "99 % of the bin counts of a uniform rank fall (binomial). A U shape means u is too small, "
-                        "a hump too large, a slope a bias.")
+    rep.add_figure(
+        fig,
+        f"Rank histograms over {n} campaigns: the posterior CDF at the truth, in "
+        f"{sums[keys[0]]['bins']} bins. Calibrated posteriors give a flat histogram; grey: where "
+        "99 % of the bin counts of a uniform rank fall (binomial). A U shape means u is too "
+        "small, a hump too large, a slope a bias.",
+    )
 
 
 def _coverage_figure(rep, sums):
@@ -393,33 +551,43 @@ def _coverage_figure(rep, sums):
         c = [100 * sums[k][f"coverage_{key}"] for k in keys]
         e = [100 * sums[k][f"se_{key}"] for k in keys]
         se0 = 100 * sums[keys[0]][f"se_nominal_{key}"]
-        ax.axvspan(100 * p - 2 * se0, 100 * p + 2 * se0, color="0.88", label="nominal +/- 2 binomial sd")
+        ax.axvspan(
+            100 * p - 2 * se0, 100 * p + 2 * se0, color="0.88", label="nominal +/- 2 binomial sd"
+        )
         ax.axvline(100 * p, color="0.3", lw=0.8)
         ax.errorbar(c, y, xerr=e, fmt="o", color="tab:blue", label="observed +/- 1 binomial se")
         ax.set_yticks(y, [LABELS[k] for k in keys])
         ax.set_xlabel(f"coverage of the {key} % interval (%)")
     axes[0].legend(fontsize=7, loc="lower left")
     fig.tight_layout()
-    rep.add_figure(fig, "Coverage of estimate +/- z u (z = 0.994 for 68 %, 1.960 for 95 %) over the campaigns, with "
-                        "binomial standard errors.")
+    rep.add_figure(
+        fig,
+        "Coverage of estimate +/- z u (z = 0.994 for 68 %, 1.960 for 95 %) over the campaigns, "
+        "with binomial standard errors.",
+    )
 
 
 def _describe(study, settings, rep) -> None:
     """What was simulated and analysed, and the truth distribution."""
     post = settings.options.posterior
-    rep.add_text(f"{study.n_campaigns} campaigns, each with its own truth drawn from the distribution below, "
-                 f"simulated at reduced size ({study.points} spectral points, {study.samples} samples of 20 ns, "
-                 f"{study.averages} averages; one configuration) and analysed by the full budget pipeline "
-                 f"(TF-CRDS, {settings.options.window} window, {study.profile}, t_cut = {study.t_cut_s * 1e6:g} us, "
-                 f"{post} posterior). The analysis priors are flat or log-flat on wide physical bounds, so no prior "
-                 f"is informative: truths are drawn inside the bounds, and what is checked is frequentist coverage "
-                 f"averaged over those truths (simulation-based calibration with a flat prior).")
+    rep.add_text(
+        f"{study.n_campaigns} campaigns, each with its own truth drawn from the distribution "
+        f"below, simulated at reduced size ({study.points} spectral points, {study.samples} "
+        f"samples of 20 ns, {study.averages} averages; one configuration) and analysed by the "
+        f"full budget pipeline (TF-CRDS, {settings.options.window} window, {study.profile}, t_cut "
+        f"= {study.t_cut_s * 1e6:g} us, {post} posterior). The analysis priors are flat or "
+        "log-flat on wide physical bounds, so no prior is informative: truths are drawn inside "
+        "the bounds, and what is checked is frequentist coverage averaged over those truths "
+        "(simulation-based calibration with a flat prior)."
+    )
     if post == "laplace":
-        rep.add_text("Posterior: 'laplace' (Gaussian posteriors from the least-squares fits, the beat-note fit and "
-                     "the refinement's sandwich covariance). The MCMC pipeline takes minutes per campaign on this "
-                     "machine (four ensembles per posterior, extended until the gates pass), which would put 200 "
-                     "campaigns far beyond the study's 20-minute budget on 2 cores; the MCMC cross-check below "
-                     "runs a subset of the same campaigns.")
+        rep.add_text(
+            "Posterior: 'laplace' (Gaussian posteriors from the least-squares fits, the beat-note "
+            "fit and the refinement's sandwich covariance). The MCMC pipeline takes minutes per "
+            "campaign on this machine (four ensembles per posterior, extended until the gates "
+            "pass), which would put 200 campaigns far beyond the study's 20-minute budget on 2 "
+            "cores; the MCMC cross-check below runs a subset of the same campaigns."
+        )
     rep.add_heading("Truth distribution")
     rep.add_table(["parameter", "drawn from"], settings.dist.describe())
 
@@ -430,19 +598,41 @@ def _coverage_table(sums: dict, n: int, post: str, rep) -> None:
     rep.add_heading("Coverage")
     rows = []
     for k, s in sums.items():
-        rows.append([LABELS[k], s["n"], f"{100 * s['coverage_68']:.1f} +/- {100 * s['se_68']:.1f}",
-                     f"{100 * s['coverage_95']:.1f} +/- {100 * s['se_95']:.1f}", f"{s['mean_pull']:+.3g}",
-                     f"{s['sd_pull']:.3g}", f"{s['median_pull']:+.3f}", f"{s['robust_sd_pull']:.3f}",
-                     f"{s['rank_chi2']:.1f} ({s['rank_dof']})", f"{s['rank_p']:.3f}"])
-    rep.add_table(["quantity", "campaigns", "68 % coverage (%)", "95 % coverage (%)", "mean pull", "sd of pulls",
-                   "median pull", "robust sd of pulls (1.4826 MAD)", "rank chi2 (dof)", "p"], rows,
-                  caption="Coverage +/- binomial standard error sqrt(c(1-c)/n). Pull = (truth - estimate)/u; the "
-                          "mean and sd are dominated by any gross outlier (listed below), the median and MAD are not. "
-                          "The first "
-                          "four rows use the posterior (ring-down noise and H, the budget's statistical u); the u_c "
-                          "rows use the full GUM budget, whose Type B rows (t_cut choice, qSDHCP vs SDVP) describe "
-                          "choices the simulation does not vary (its truth is the fitted qSDHCP), so they cover more "
-                          "than nominal by design.")
+        rows.append(
+            [
+                LABELS[k],
+                s["n"],
+                f"{100 * s['coverage_68']:.1f} +/- {100 * s['se_68']:.1f}",
+                f"{100 * s['coverage_95']:.1f} +/- {100 * s['se_95']:.1f}",
+                f"{s['mean_pull']:+.3g}",
+                f"{s['sd_pull']:.3g}",
+                f"{s['median_pull']:+.3f}",
+                f"{s['robust_sd_pull']:.3f}",
+                f"{s['rank_chi2']:.1f} ({s['rank_dof']})",
+                f"{s['rank_p']:.3f}",
+            ]
+        )
+    rep.add_table(
+        [
+            "quantity",
+            "campaigns",
+            "68 % coverage (%)",
+            "95 % coverage (%)",
+            "mean pull",
+            "sd of pulls",
+            "median pull",
+            "robust sd of pulls (1.4826 MAD)",
+            "rank chi2 (dof)",
+            "p",
+        ],
+        rows,
+        caption="Coverage +/- binomial standard error sqrt(c(1-c)/n). Pull = (truth - "
+        "estimate)/u; the mean and sd are dominated by any gross outlier (listed below), the "
+        "median and MAD are not. The first four rows use the posterior (ring-down noise and H, "
+        "the budget's statistical u); the u_c rows use the full GUM budget, whose Type B rows "
+        "(t_cut choice, qSDHCP vs SDVP) describe choices the simulation does not vary (its truth "
+        "is the fitted qSDHCP), so they cover more than nominal by design.",
+    )
     _coverage_figure(rep, sums)
     _rank_figure(rep, {k: sums[k] for k in main_keys}, n, f"Rank histograms ({post} posterior)")
 
@@ -451,69 +641,137 @@ def _coverage_checks(sums: dict, checks: dict, recs: list, bad: list, n: int, re
     """Summary lines and pass/fail diagnostics of the coverage (targets of issue #9)."""
     main_keys = list(QUANTITIES)
     a = sums["A"]
-    rep.add_summary("A: 95 % interval coverage", f"{100 * a['coverage_95']:.1f} +/- {100 * a['se_95']:.1f} %",
-                    f"{n} campaigns; target 95 +/- 3 %")
-    rep.add_summary("A: 68 % interval coverage", f"{100 * a['coverage_68']:.1f} +/- {100 * a['se_68']:.1f} %",
-                    f"{n} campaigns; target 68 +/- 5 %")
+    rep.add_summary(
+        "A: 95 % interval coverage",
+        f"{100 * a['coverage_95']:.1f} +/- {100 * a['se_95']:.1f} %",
+        f"{n} campaigns; target 95 +/- 3 %",
+    )
+    rep.add_summary(
+        "A: 68 % interval coverage",
+        f"{100 * a['coverage_68']:.1f} +/- {100 * a['se_68']:.1f} %",
+        f"{n} campaigns; target 68 +/- 5 %",
+    )
     for k in main_keys[1:]:
         s = sums[k]
-        rep.add_summary(f"{LABELS[k]}: 68 % / 95 % coverage",
-                        f"{100 * s['coverage_68']:.1f} / {100 * s['coverage_95']:.1f} %", f"rank chi2 p = {s['rank_p']:.3f}")
-    rep.add_diagnostic("every campaign analysed", not bad, f"{len(bad)} of {len(recs)} failed" +
-                       (f": {bad[0]['status']}" if bad else ""))
-    rep.add_diagnostic("A: 95 % coverage within 95 +/- 3 % (issue #9)", abs(a["coverage_95"] - 0.95) <= 0.03,
-                       f"{100 * a['coverage_95']:.1f} %")
-    rep.add_diagnostic("A: 68 % coverage within 68 +/- 5 % (issue #9)", abs(a["coverage_68"] - 0.68) <= 0.05,
-                       f"{100 * a['coverage_68']:.1f} %")
+        rep.add_summary(
+            f"{LABELS[k]}: 68 % / 95 % coverage",
+            f"{100 * s['coverage_68']:.1f} / {100 * s['coverage_95']:.1f} %",
+            f"rank chi2 p = {s['rank_p']:.3f}",
+        )
+    rep.add_diagnostic(
+        "every campaign analysed",
+        not bad,
+        f"{len(bad)} of {len(recs)} failed" + (f": {bad[0]['status']}" if bad else ""),
+    )
+    rep.add_diagnostic(
+        "A: 95 % coverage within 95 +/- 3 % (issue #9)",
+        abs(a["coverage_95"] - 0.95) <= 0.03,
+        f"{100 * a['coverage_95']:.1f} %",
+    )
+    rep.add_diagnostic(
+        "A: 68 % coverage within 68 +/- 5 % (issue #9)",
+        abs(a["coverage_68"] - 0.68) <= 0.05,
+        f"{100 * a['coverage_68']:.1f} %",
+    )
     for k in main_keys:
         for p in LEVELS:
             key = int(100 * p)
             s = sums[k]
-            rep.add_diagnostic(f"{LABELS[k]}: {key} % coverage within 3 binomial sd of nominal",
-                               checks[k][f"coverage_{key}"],
-                               f"{100 * s[f'coverage_{key}']:.1f} % (3 sd = {300 * s[f'se_nominal_{key}']:.1f} %)")
-        rep.add_diagnostic(f"{LABELS[k]}: ranks uniform (chi-square, p > 0.01)", checks[k]["ranks_uniform"],
-                           f"chi2 = {sums[k]['rank_chi2']:.1f}, {sums[k]['rank_dof']} dof, p = {sums[k]['rank_p']:.3f}")
+            rep.add_diagnostic(
+                f"{LABELS[k]}: {key} % coverage within 3 binomial sd of nominal",
+                checks[k][f"coverage_{key}"],
+                f"{100 * s[f'coverage_{key}']:.1f} % (3 sd = {300 * s[f'se_nominal_{key}']:.1f} %)",
+            )
+        rep.add_diagnostic(
+            f"{LABELS[k]}: ranks uniform (chi-square, p > 0.01)",
+            checks[k]["ranks_uniform"],
+            f"chi2 = {sums[k]['rank_chi2']:.1f}, {sums[k]['rank_dof']} dof, p = "
+            f"{sums[k]['rank_p']:.3f}",
+        )
 
 
 def _outliers(settings, recs: list, ok: list, bad: list, n: int, rep) -> dict:
-    """Failed and far-off campaigns, each with a beat-note mode check; returns the checks by index."""
+    """Failed and far-off campaigns, each with a beat-note mode check; returns those by index."""
     main_keys = list(QUANTITIES)
     if bad:
         rep.add_heading("Campaigns the pipeline could not analyse")
-        rep.add_text("They are left out of the coverage above and counted here; each can be rerun alone with "
-                     "bayes_tfcrds.studies.coverage.run_campaign(settings, index).")
-        rep.add_table(["campaign", "base chain", "status", "where"],
-                      [[r["index"], r["draw"]["preset"], r["status"], " <- ".join(reversed(r.get("trace", [])))]
-                       for r in bad])
-    far = [(r["index"], k, r["quantities"][k]["pull"]) for r in ok for k in main_keys
-           if abs(r["quantities"][k]["pull"]) > 4]
+        rep.add_text(
+            "They are left out of the coverage above and counted here; each can be rerun alone "
+            "with bayes_tfcrds.studies.coverage.run_campaign(settings, index)."
+        )
+        rep.add_table(
+            ["campaign", "base chain", "status", "where"],
+            [
+                [
+                    r["index"],
+                    r["draw"]["preset"],
+                    r["status"],
+                    " <- ".join(reversed(r.get("trace", []))),
+                ]
+                for r in bad
+            ],
+        )
+    far = [
+        (r["index"], k, r["quantities"][k]["pull"])
+        for r in ok
+        for k in main_keys
+        if abs(r["quantities"][k]["pull"]) > 4
+    ]
     if far:
         rep.add_heading("Pulls beyond 4")
-        rep.add_text(f"Expected about {n * len(main_keys) * 2 * stats.norm.sf(4):.2f} for Gaussian pulls.")
-        rep.add_table(["campaign", "quantity", "pull"], [[i, LABELS[k], f"{z:+.3g}"] for i, k, z in far])
+        rep.add_text(
+            f"Expected about {n * len(main_keys) * 2 * stats.norm.sf(4):.2f} for Gaussian pulls."
+        )
+        rep.add_table(
+            ["campaign", "quantity", "pull"], [[i, LABELS[k], f"{z:+.3g}"] for i, k, z in far]
+        )
     suspects = sorted({r["index"] for r in bad} | {i for i, _, _ in far})
     modes = {i: beat_note_mode(settings, i) for i in suspects}
     if modes:
         rep.add_heading("Beat-note check of the failed and far-off campaigns")
-        rep.add_text("Each is simulated again and its beat note refitted. |H| alone cannot tell A_r from its mirror "
-                     "-A_r/(1 + 2 A_r) (the same gain above f_c, nearly the same |H| near it); when the fit lands on "
-                     "the mirror, the ring-downs disagree with H and the refinement either fails or moves f_c far "
-                     "to compensate, with a small stated u.")
-        rep.add_table(["campaign", "A_r true", "A_r beat fit", "chi2 beat fit", "A_r fit started at truth",
-                       "chi2 started at truth", "mirror solution"],
-                      [[i, f"{m['a_r_true']:.3f}", f"{m['a_r_fit']:.3f}", f"{m['chi2_fit']:.2f}",
-                        f"{m['a_r_from_truth']:.3f}", f"{m['chi2_from_truth']:.2f}", "yes" if m["mirror"] else "no"]
-                       for i, m in modes.items()])
+        rep.add_text(
+            "Each is simulated again and its beat note refitted. |H| alone cannot tell A_r from "
+            "its mirror -A_r/(1 + 2 A_r) (the same gain above f_c, nearly the same |H| near it); "
+            "when the fit lands on the mirror, the ring-downs disagree with H and the refinement "
+            "either fails or moves f_c far to compensate, with a small stated u."
+        )
+        rep.add_table(
+            [
+                "campaign",
+                "A_r true",
+                "A_r beat fit",
+                "chi2 beat fit",
+                "A_r fit started at truth",
+                "chi2 started at truth",
+                "mirror solution",
+            ],
+            [
+                [
+                    i,
+                    f"{m['a_r_true']:.3f}",
+                    f"{m['a_r_fit']:.3f}",
+                    f"{m['chi2_fit']:.2f}",
+                    f"{m['a_r_from_truth']:.3f}",
+                    f"{m['chi2_from_truth']:.2f}",
+                    "yes" if m["mirror"] else "no",
+                ]
+                for i, m in modes.items()
+            ],
+        )
         n_mirror = sum(m["mirror"] for m in modes.values())
-        rep.add_diagnostic("no campaign's beat-note fit on the mirror A_r solution", n_mirror == 0,
-                           f"{n_mirror} of {len(recs)} campaigns")
+        rep.add_diagnostic(
+            "no campaign's beat-note fit on the mirror A_r solution",
+            n_mirror == 0,
+            f"{n_mirror} of {len(recs)} campaigns",
+        )
     return modes
 
 
 def _mcmc_cross_check(study, settings, ok: list, folder, pool, progress, rep):
-    """The first ``study.mcmc_campaigns`` campaigns again with the MCMC posterior (same draws, data
-    and analysis seeds); returns (numbers, records)."""
+    """The first ``study.mcmc_campaigns`` campaigns again with the MCMC posterior.
+
+    Same draws, data and analysis seeds; returns (numbers, records).
+    """
     main_keys = list(QUANTITIES)
     m = min(study.mcmc_campaigns, study.n_campaigns)
     ms = replace(settings, options=replace(settings.options, posterior="mcmc"))
@@ -521,9 +779,11 @@ def _mcmc_cross_check(study, settings, ok: list, folder, pool, progress, rep):
     mok = [r for r in mrecs if r.get("status") == "ok"]
     mfail = [r for r in mrecs if r.get("status") != "ok"]
     rep.add_heading(f"MCMC cross-check ({m} of the campaigns)")
-    rep.add_text("The first campaigns again, with emcee posteriors for H, the line and A_ref (convergence gates "
-                 "R-hat < 1.01, ESS > 400, > 50 autocorrelation times). A campaign that misses a gate is listed "
-                 "as failed and left out; it is never counted as covered.")
+    rep.add_text(
+        "The first campaigns again, with emcee posteriors for H, the line and A_ref (convergence "
+        "gates R-hat < 1.01, ESS > 400, > 50 autocorrelation times). A campaign that misses a "
+        "gate is listed as failed and left out; it is never counted as covered."
+    )
     mb = 5 if len(mok) >= 25 else max(2, len(mok) // 5)
     msums = {k: summarise(mrecs, k, bins=mb) for k in main_keys} if mok else {}
     lap = {r["index"]: r for r in ok}
@@ -532,27 +792,57 @@ def _mcmc_cross_check(study, settings, ok: list, folder, pool, progress, rep):
         if not mok:
             break
         s = msums[k]
-        both = [(lap[r["index"]]["quantities"][k], r["quantities"][k]) for r in mok if r["index"] in lap]
+        both = [
+            (lap[r["index"]]["quantities"][k], r["quantities"][k]) for r in mok if r["index"] in lap
+        ]
         du = np.median([b["u"] / a_["u"] for a_, b in both]) if both else float("nan")
-        rows.append([LABELS[k], s["n"], f"{100 * s['coverage_68']:.0f} +/- {100 * s['se_68']:.0f}",
-                     f"{100 * s['coverage_95']:.0f} +/- {100 * s['se_95']:.0f}", f"{s['sd_pull']:.2f}",
-                     f"{du:.3f}"])
+        rows.append(
+            [
+                LABELS[k],
+                s["n"],
+                f"{100 * s['coverage_68']:.0f} +/- {100 * s['se_68']:.0f}",
+                f"{100 * s['coverage_95']:.0f} +/- {100 * s['se_95']:.0f}",
+                f"{s['sd_pull']:.2f}",
+                f"{du:.3f}",
+            ]
+        )
     if rows:
-        rep.add_table(["quantity", "campaigns", "68 % coverage (%)", "95 % coverage (%)", "sd of pulls",
-                       "median u(MCMC)/u(Laplace)"], rows)
+        rep.add_table(
+            [
+                "quantity",
+                "campaigns",
+                "68 % coverage (%)",
+                "95 % coverage (%)",
+                "sd of pulls",
+                "median u(MCMC)/u(Laplace)",
+            ],
+            rows,
+        )
     if mfail:
-        rep.add_table(["campaign", "status", "where"],
-                      [[r["index"], r["status"], " <- ".join(reversed(r.get("trace", [])))] for r in mfail])
-    rep.add_diagnostic("MCMC cross-check: every campaign sampled and its convergence gates met", not mfail,
-                       f"{len(mfail)} of {len(mrecs)} failed" + (f": {mfail[0]['status']}" if mfail else ""))
-    return {"n": m, "n_ok": len(mok), "failed": [r["status"] for r in mfail], "summaries": msums}, mrecs
+        rep.add_table(
+            ["campaign", "status", "where"],
+            [[r["index"], r["status"], " <- ".join(reversed(r.get("trace", [])))] for r in mfail],
+        )
+    rep.add_diagnostic(
+        "MCMC cross-check: every campaign sampled and its convergence gates met",
+        not mfail,
+        f"{len(mfail)} of {len(mrecs)} failed" + (f": {mfail[0]['status']}" if mfail else ""),
+    )
+    return {
+        "n": m,
+        "n_ok": len(mok),
+        "failed": [r["status"] for r in mfail],
+        "summaries": msums,
+    }, mrecs
 
 
 def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
-    """The ``coverage`` study kind: draw, simulate and analyse ``study.n_campaigns`` campaigns; report."""
+    """The ``coverage`` study: draw, simulate, analyse ``study.n_campaigns`` campaigns; report."""
     settings = settings_of(study)
     folder = Path(out) / "campaigns"
-    recs = run_campaigns(settings, range(study.n_campaigns), folder, pool, progress, "coverage campaigns")
+    recs = run_campaigns(
+        settings, range(study.n_campaigns), folder, pool, progress, "coverage campaigns"
+    )
     ok = [r for r in recs if r.get("status") == "ok"]
     bad = [r for r in recs if r.get("status") != "ok"]
     bins = 10 if len(ok) >= 100 else 5
@@ -568,19 +858,38 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
     n_all = len(recs)
     a95_all = sum(r["quantities"]["A"]["in95"] for r in ok) / n_all
     a68_all = sum(r["quantities"]["A"]["in68"] for r in ok) / n_all
-    rep.add_summary("A: coverage counting failed campaigns as misses",
-                    f"68 %: {100 * a68_all:.1f} %, 95 %: {100 * a95_all:.1f} %", f"{n_all} campaigns, {len(bad)} failed")
-    numbers = {"posterior": post, "n_campaigns": study.n_campaigns, "n_ok": n, "failed": [r["status"] for r in bad],
-               "truth_distribution": asdict(settings.dist), "summaries": sums, "checks": checks,
-               "settings_fingerprint": settings.fingerprint(), "beat_note_modes": modes,
-               "a_coverage_failures_as_misses": {"68": a68_all, "95": a95_all}}
+    rep.add_summary(
+        "A: coverage counting failed campaigns as misses",
+        f"68 %: {100 * a68_all:.1f} %, 95 %: {100 * a95_all:.1f} %",
+        f"{n_all} campaigns, {len(bad)} failed",
+    )
+    numbers = {
+        "posterior": post,
+        "n_campaigns": study.n_campaigns,
+        "n_ok": n,
+        "failed": [r["status"] for r in bad],
+        "truth_distribution": asdict(settings.dist),
+        "summaries": sums,
+        "checks": checks,
+        "settings_fingerprint": settings.fingerprint(),
+        "beat_note_modes": modes,
+        "a_coverage_failures_as_misses": {"68": a68_all, "95": a95_all},
+    }
     m = min(study.mcmc_campaigns, study.n_campaigns)
     mrecs = []
     if m and post != "mcmc":
-        numbers["mcmc_check"], mrecs = _mcmc_cross_check(study, settings, ok, folder, pool, progress, rep)
+        numbers["mcmc_check"], mrecs = _mcmc_cross_check(
+            study, settings, ok, folder, pool, progress, rep
+        )
     codes = sorted({r.get("code", "not recorded") for r in recs + mrecs})
-    rep.add_text("Campaign records are reused on a rerun whatever the code version; they were computed with: "
-                 + ", ".join(codes) + ". Delete the campaigns/ folder to recompute them with the current code.")
+    rep.add_text(
+        "Campaign records are reused on a rerun whatever the code version; they were computed "
+        "with: "
+        + ", ".join(codes)
+        + ". Delete the campaigns/ folder to recompute them with the current code."
+    )
     numbers["campaign_code"] = codes
-    numbers["records"] = [{k: r[k] for k in ("index", "status", "draw", "quantities") if k in r} for r in recs]
+    numbers["records"] = [
+        {k: r[k] for k in ("index", "status", "draw", "quantities") if k in r} for r in recs
+    ]
     return numbers

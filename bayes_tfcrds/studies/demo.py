@@ -39,29 +39,40 @@ class DemoResult:
 
     def summary_lines(self) -> list[str]:
         """The Markdown table of ``summary.md`` (one row per configuration, method and t_cut)."""
-        lines = ["| config | method | t_cut (us) | A (cm^-2) | A/A_ref - 1 (%) | u (%) | chi2_red | held at 0 |",
-                 "|---|---|---|---|---|---|---|---|"]
+        lines = [
+            "| config | method | t_cut (us) | A (cm^-2) | A/A_ref - 1 (%) | u (%) | chi2_red | "
+            "held at 0 |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for r in self.analyses:
             held = ", ".join(r.shape_at_bound) or "-"
-            lines.append(f"| {r.configuration} | {r.method} | {r.t_cut_s * 1e6:g} | {r.line_area.value:.6e} | "
-                         f"{100 * (r.ratio.value - 1):+.3f} | {100 * r.ratio.u:.3f} | "
-                         f"{r.chi2_red:.2f} | {held} |")
+            lines.append(
+                f"| {r.configuration} | {r.method} | {r.t_cut_s * 1e6:g} | "
+                f"{r.line_area.value:.6e} | {100 * (r.ratio.value - 1):+.3f} | "
+                f"{100 * r.ratio.u:.3f} | {r.chi2_red:.2f} | {held} |"
+            )
         return lines
 
 
 def demo_campaign(quick: bool = False) -> Campaign:
-    """The letter's campaign, or a smaller one (41 modes, 8192 samples, 20 averages) for a first look."""
+    """The letter's campaign, or a smaller one (41 modes, 8192 samples, 20 averages) if quick."""
     return Campaign() if not quick else replace(Campaign(), n_points=41, n_samples=8192, n_avg=20)
 
 
-def run_demo(outdir, seed: int = 7, quick: bool = False, log: Callable[[str], None] = lambda s: None) -> DemoResult:
-    """Simulate the campaign into ``outdir/campaign.h5``, analyse it, write ``results.json`` and
-    ``summary.md``; ``log`` receives one line per step."""
+def run_demo(
+    outdir, seed: int = 7, quick: bool = False, log: Callable[[str], None] = lambda s: None
+) -> DemoResult:
+    """Simulate the campaign, analyse it and write its files into ``outdir``.
+
+    Writes ``campaign.h5``, ``results.json`` and ``summary.md``; ``log`` receives one line per step.
+    """
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     campaign = demo_campaign(quick)
-    log(f"simulating {', '.join(PRESETS)} (seed {seed}, {spectral_points(campaign).size} cavity modes x "
-        f"{campaign.n_samples} samples, {campaign.n_avg} averages) ...")
+    log(
+        f"simulating {', '.join(PRESETS)} (seed {seed}, {spectral_points(campaign).size} cavity "
+        f"modes x {campaign.n_samples} samples, {campaign.n_avg} averages) ..."
+    )
     bundle, truth = simulate_campaign(list(PRESETS), np.random.default_rng(seed), campaign)
     path = out / "campaign.h5"
     save_bundle(bundle, path, truth=truth)
@@ -71,10 +82,22 @@ def run_demo(outdir, seed: int = 7, quick: bool = False, log: Callable[[str], No
         cal = calibrate(cfg)
         for method in METHODS:
             for tc in T_CUTS_S:
-                analyses.append(analyse_line(bundle, cfg, method=method, t_cut_s=tc, physical_bounds=True,
-                                             calibration=cal if method == "tf-crds" else None))
+                analyses.append(
+                    analyse_line(
+                        bundle,
+                        cfg,
+                        method=method,
+                        t_cut_s=tc,
+                        physical_bounds=True,
+                        calibration=cal if method == "tf-crds" else None,
+                    )
+                )
                 log(f"  {name} {method} t_cut {tc * 1e6:g} us done")
     result = DemoResult(tuple(analyses), path, out / "results.json", out / "summary.md")
-    atomic_write_text(result.results_path, json.dumps([r.to_dict() for r in analyses], indent=2) + "\n")
-    atomic_write_text(result.summary_path, SUMMARY_TITLE + "\n\n" + "\n".join(result.summary_lines()) + "\n")
+    atomic_write_text(
+        result.results_path, json.dumps([r.to_dict() for r in analyses], indent=2) + "\n"
+    )
+    atomic_write_text(
+        result.summary_path, SUMMARY_TITLE + "\n\n" + "\n".join(result.summary_lines()) + "\n"
+    )
     return result

@@ -2,28 +2,178 @@
 
 from __future__ import annotations
 
-from bayes_tfcrds.output.plotting import pyplot
-
 import numpy as np
 
 from bayes_tfcrds.fit.h_calibration import calibrate
-
-
-from bayes_tfcrds.fit.ringdown import fit_ringdowns
-
-from bayes_tfcrds.fit.spectrum import crds_spectrum
-
 from bayes_tfcrds.fit.line import fit_line
-
 from bayes_tfcrds.fit.line_analysis import analyse_line, doppler_of
-
+from bayes_tfcrds.fit.ringdown import fit_ringdowns
+from bayes_tfcrds.fit.spectrum import crds_spectrum
+from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.physics.transfer_function import transfer_function
 
-def _plt():
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    return plt
+
+def _figure_transfer_function(plt, rep, name, cfg, cal, tf, longest, tc) -> None:
+    """Letter Fig. 2a: beat-note |H|, Eq. 2 fitted to it and refined, ring-down spectra."""
+    rd = cfg.ringdowns
+    i_long, i_short = longest
+    fig, ax = plt.subplots(figsize=(7.5, 4.2))
+    t_data = cfg.transfer_function
+    f = np.asarray(t_data.f_hz)
+    ax.errorbar(
+        f,
+        t_data.h_mag / cal.beat.scale,
+        t_data.h_mag_u / cal.beat.scale,
+        fmt=".",
+        color="0.3",
+        label="beat note |H| (normalised)",
+    )
+    ff = np.logspace(np.log10(f[0]), np.log10(f[-1]), 400)
+    ax.semilogx(
+        ff,
+        np.abs(transfer_function(ff, cal.beat.params)),
+        "k-",
+        label="Eq. 2 fitted to the beat note",
+    )
+    ax.semilogx(
+        ff,
+        np.abs(transfer_function(ff, cal.params)),
+        "-",
+        color="tab:orange",
+        label="refined on ring-downs (f_c)",
+    )
+    ax2 = ax.twinx()
+    t = rd.time_s
+    for i, col in ((i_long, "tab:blue"), (i_short, "tab:red")):
+        sel = t >= tc
+        spec = np.abs(np.fft.rfft(rd.signal_v[i, sel] - np.mean(rd.signal_v[i, sel][-200:])))
+        fs = np.fft.rfftfreq(sel.sum(), rd.dt_s)
+        ax2.fill_between(
+            fs[1:],
+            spec[1:] / spec[1:].max(),
+            color=col,
+            alpha=0.15,
+            label=f"ring-down spectrum, tau = {tf.tau_s[i, 0] * 1e6:.1f} us",
+        )
+    ax2.set_yscale("log")
+    ax2.set_ylim(1e-4, 2)
+    ax2.set_ylabel("ring-down Fourier amplitude (norm.)")
+    ax.set_xlabel("frequency (Hz)")
+    ax.set_ylabel("|H(f)|")
+    ax.set_xlim(f[0], f[-1])
+    ax.legend(fontsize=7, loc="lower left")
+    ax2.legend(fontsize=7, loc="center left")
+    ax.set_title(f"{name}: detection transfer function (letter Fig. 2a)")
+    rep.add_figure(
+        fig,
+        f"{name}: measured |H| (dots), Eq. 2 fitted to it (black), refined by the multi-ring-down "
+        "fit (orange); shaded: Fourier spectra of the long and short ring-downs.",
+    )
+
+
+def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, longest, tc) -> None:
+    """Letter Fig. 2b: the longest and shortest ring-downs with CRDS and TF-CRDS residuals."""
+    i_long, i_short = longest
+    t = rd.time_s
+    fig, axes = plt.subplots(
+        3, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [2, 1, 1]}
+    )
+    sel = t >= tc
+    for i, col in ((i_long, "tab:blue"), (i_short, "tab:red")):
+        axes[0].plot(
+            t[sel] * 1e6,
+            rd.signal_v[i, sel] * 1e3,
+            color=col,
+            lw=0.8,
+            label=f"tau = {tf.tau_s[i, 0] * 1e6:.1f} us",
+        )
+        rc = crds.residuals_v[i, 0, sel] * 1e3
+        rt = tf.residuals_v[i, 0, sel] * 1e3
+        axes[1 if i == i_long else 2].plot(
+            t[sel] * 1e6,
+            rc,
+            color=col,
+            lw=0.5,
+            label=f"CRDS residual (RMS {np.sqrt(np.mean(rc**2)):.3f} mV)",
+        )
+        axes[1 if i == i_long else 2].plot(
+            t[sel] * 1e6,
+            rt,
+            color="k",
+            lw=0.5,
+            label=f"TF-CRDS residual (RMS {np.sqrt(np.mean(rt**2)):.3f} mV)",
+        )
+        numbers[f"{name}_residual_rms_mv_tau{tf.tau_s[i, 0] * 1e6:.0f}us"] = {
+            "crds": float(np.sqrt(np.mean(rc**2))),
+            "tf-crds": float(np.sqrt(np.mean(rt**2))),
+        }
+    axes[0].set_ylabel("signal (mV)")
+    axes[0].legend(fontsize=7)
+    for a in axes[1:]:
+        a.set_ylabel("residual (mV)")
+        a.legend(fontsize=7, loc="upper right")
+    axes[0].set_xlim(tc * 1e6, min(t[-1], 8 * tf.tau_s[i_long, 0]) * 1e6)
+    axes[-1].set_xlabel("time after extinction (us)")
+    axes[0].set_title(f"{name}: ring-downs truncated at t_cut = {tc * 1e6:g} us (letter Fig. 2b)")
+    rep.add_figure(
+        fig,
+        f"{name}: ring-downs with the longest and shortest decay times, and the residuals of CRDS "
+        "(colour) and TF-CRDS with the refined H (black).",
+    )
+
+
+def _figure_spectra(plt, rep, name, study, bundle, crds, tf, gd, tc):
+    """Letter Fig. 3: CRDS and TF-CRDS spectra with line fits, residuals, the tau correction.
+
+    Returns (relative tau correction in %, CRDS line fit, TF-CRDS line fit).
+    """
+    sp_c = crds_spectrum(crds.nu_hz, crds.tau_s[:, 0], crds.tau_u_s[:, 0])
+    sp_t = crds_spectrum(tf.nu_hz, tf.tau_s[:, 0], tf.tau_u_s[:, 0])
+    fc = fit_line([sp_c], study.profile, gd, bundle.sample.nu0_hz)
+    ft = fit_line([sp_t], study.profile, gd, bundle.sample.nu0_hz)
+    det = (sp_t.nu_hz - bundle.sample.nu0_hz) / 1e9
+    order = np.argsort(det)
+    fig, axes = plt.subplots(
+        4, 1, figsize=(7.5, 8), sharex=True, gridspec_kw={"height_ratios": [2, 1, 1, 1]}
+    )
+    axes[0].plot(det, sp_c.y * 1e4, "s", ms=3, color="tab:blue", label="CRDS 1/(c tau)")
+    axes[0].plot(det, sp_t.y * 1e4, ".", ms=4, color="k", label="TF-CRDS 1/(c tau)")
+    model_c = sp_c.y - fc.residuals[0]
+    model_t = sp_t.y - ft.residuals[0]
+    axes[0].plot(
+        det[order],
+        model_c[order] * 1e4,
+        "--",
+        color="tab:blue",
+        lw=0.8,
+        label=f"{study.profile} fit (CRDS)",
+    )
+    axes[0].plot(
+        det[order],
+        model_t[order] * 1e4,
+        "-",
+        color="tab:red",
+        lw=0.8,
+        label=f"{study.profile} fit (TF-CRDS)",
+    )
+    axes[0].set_ylabel("loss 1/(c tau) (1e-6 cm^-1)")  # 1/m x 1e-2 -> 1/cm, x 1e6
+    axes[0].legend(fontsize=7)
+    axes[1].plot(det, fc.residuals[0] / sp_c.u, "s", ms=3, color="tab:blue")
+    axes[1].set_ylabel("CRDS resid./u")
+    axes[2].plot(det, ft.residuals[0] / sp_t.u, ".", ms=4, color="k")
+    axes[2].set_ylabel("TF-CRDS resid./u")
+    rel = 100 * (tf.tau_s[:, 0] - crds.tau_s[:, 0]) / crds.tau_s[:, 0]
+    axes[3].plot((tf.nu_hz - bundle.sample.nu0_hz) / 1e9, rel, ".", color="tab:purple")
+    axes[3].set_ylabel("(tau_TF - tau)/tau (%)")
+    axes[3].set_xlabel("detuning (GHz)")
+    axes[0].set_title(f"{name}: spectra at t_cut = {tc * 1e6:g} us (letter Fig. 3)")
+    rep.add_figure(
+        fig,
+        f"{name}: CRDS and TF-CRDS spectra with {study.profile} fits, normalised residuals, and "
+        "the relative difference of TF-corrected and apparent decay times across the line.",
+    )
+    return rel, fc, ft
+
 
 def letter_figures(study, bundle, truth, rep, out=None, progress=False, pool=None):
     """Fig. 2a (beat note and models), Fig. 2b (ring-downs and residuals), Fig. 3 (spectra)."""
@@ -36,96 +186,34 @@ def letter_figures(study, bundle, truth, rep, out=None, progress=False, pool=Non
         rd = cfg.ringdowns
         crds = fit_ringdowns(rd, [tc], "crds", keep_residuals=True)
         tf = fit_ringdowns(rd, [tc], "tf-crds", cal.params, study.windows[0], keep_residuals=True)
-        i_long, i_short = int(np.nanargmax(tf.tau_s[:, 0])), int(np.nanargmin(tf.tau_s[:, 0]))
-        # Fig. 2a
-        fig, ax = plt.subplots(figsize=(7.5, 4.2))
-        t_data = cfg.transfer_function
-        f = np.asarray(t_data.f_hz)
-        ax.errorbar(f, t_data.h_mag / cal.beat.scale, t_data.h_mag_u / cal.beat.scale, fmt=".", color="0.3",
-                    label="beat note |H| (normalised)")
-        ff = np.logspace(np.log10(f[0]), np.log10(f[-1]), 400)
-        ax.semilogx(ff, np.abs(transfer_function(ff, cal.beat.params)), "k-", label="Eq. 2 fitted to the beat note")
-        ax.semilogx(ff, np.abs(transfer_function(ff, cal.params)), "-", color="tab:orange",
-                    label="refined on ring-downs (f_c)")
-        ax2 = ax.twinx()
-        t = rd.time_s
-        for i, col in ((i_long, "tab:blue"), (i_short, "tab:red")):
-            sel = t >= tc
-            spec = np.abs(np.fft.rfft(rd.signal_v[i, sel] - np.mean(rd.signal_v[i, sel][-200:])))
-            fs = np.fft.rfftfreq(sel.sum(), rd.dt_s)
-            ax2.fill_between(fs[1:], spec[1:] / spec[1:].max(), color=col, alpha=0.15,
-                             label=f"ring-down spectrum, tau = {tf.tau_s[i, 0] * 1e6:.1f} us")
-        ax2.set_yscale("log")
-        ax2.set_ylim(1e-4, 2)
-        ax2.set_ylabel("ring-down Fourier amplitude (norm.)")
-        ax.set_xlabel("frequency (Hz)")
-        ax.set_ylabel("|H(f)|")
-        ax.set_xlim(f[0], f[-1])
-        ax.legend(fontsize=7, loc="lower left")
-        ax2.legend(fontsize=7, loc="center left")
-        ax.set_title(f"{name}: detection transfer function (letter Fig. 2a)")
-        rep.add_figure(fig, f"{name}: measured |H| (dots), Eq. 2 fitted to it (black), refined by the multi-ring-down "
-                            "fit (orange); shaded: Fourier spectra of the long and short ring-downs.")
-        # Fig. 2b
-        fig, axes = plt.subplots(3, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [2, 1, 1]})
-        sel = t >= tc
-        for i, col in ((i_long, "tab:blue"), (i_short, "tab:red")):
-            axes[0].plot(t[sel] * 1e6, rd.signal_v[i, sel] * 1e3, color=col, lw=0.8,
-                         label=f"tau = {tf.tau_s[i, 0] * 1e6:.1f} us")
-            rc = crds.residuals_v[i, 0, sel] * 1e3
-            rt = tf.residuals_v[i, 0, sel] * 1e3
-            axes[1 if i == i_long else 2].plot(t[sel] * 1e6, rc, color=col, lw=0.5,
-                                               label=f"CRDS residual (RMS {np.sqrt(np.mean(rc**2)):.3f} mV)")
-            axes[1 if i == i_long else 2].plot(t[sel] * 1e6, rt, color="k", lw=0.5,
-                                               label=f"TF-CRDS residual (RMS {np.sqrt(np.mean(rt**2)):.3f} mV)")
-            numbers[f"{name}_residual_rms_mv_tau{tf.tau_s[i, 0] * 1e6:.0f}us"] = {
-                "crds": float(np.sqrt(np.mean(rc**2))), "tf-crds": float(np.sqrt(np.mean(rt**2)))}
-        axes[0].set_ylabel("signal (mV)")
-        axes[0].legend(fontsize=7)
-        for a in axes[1:]:
-            a.set_ylabel("residual (mV)")
-            a.legend(fontsize=7, loc="upper right")
-        axes[0].set_xlim(tc * 1e6, min(t[-1], 8 * tf.tau_s[i_long, 0]) * 1e6)
-        axes[-1].set_xlabel("time after extinction (us)")
-        axes[0].set_title(f"{name}: ring-downs truncated at t_cut = {tc * 1e6:g} us (letter Fig. 2b)")
-        rep.add_figure(fig, f"{name}: ring-downs with the longest and shortest decay times, and the residuals of "
-                            "CRDS (colour) and TF-CRDS with the refined H (black).")
-        # Fig. 3
-        sp_c = crds_spectrum(crds.nu_hz, crds.tau_s[:, 0], crds.tau_u_s[:, 0])
-        sp_t = crds_spectrum(tf.nu_hz, tf.tau_s[:, 0], tf.tau_u_s[:, 0])
-        fc = fit_line([sp_c], study.profile, gd, bundle.sample.nu0_hz)
-        ft = fit_line([sp_t], study.profile, gd, bundle.sample.nu0_hz)
-        det = (sp_t.nu_hz - bundle.sample.nu0_hz) / 1e9
-        order = np.argsort(det)
-        fig, axes = plt.subplots(4, 1, figsize=(7.5, 8), sharex=True, gridspec_kw={"height_ratios": [2, 1, 1, 1]})
-        axes[0].plot(det, sp_c.y * 1e4, "s", ms=3, color="tab:blue", label="CRDS 1/(c tau)")
-        axes[0].plot(det, sp_t.y * 1e4, ".", ms=4, color="k", label="TF-CRDS 1/(c tau)")
-        model_c = sp_c.y - fc.residuals[0]
-        model_t = sp_t.y - ft.residuals[0]
-        axes[0].plot(det[order], model_c[order] * 1e4, "--", color="tab:blue", lw=0.8, label=f"{study.profile} fit (CRDS)")
-        axes[0].plot(det[order], model_t[order] * 1e4, "-", color="tab:red", lw=0.8, label=f"{study.profile} fit (TF-CRDS)")
-        axes[0].set_ylabel("loss 1/(c tau) (1e-6 cm^-1)")   # 1/m x 1e-2 -> 1/cm, x 1e6
-        axes[0].legend(fontsize=7)
-        axes[1].plot(det, fc.residuals[0] / sp_c.u, "s", ms=3, color="tab:blue")
-        axes[1].set_ylabel("CRDS resid./u")
-        axes[2].plot(det, ft.residuals[0] / sp_t.u, ".", ms=4, color="k")
-        axes[2].set_ylabel("TF-CRDS resid./u")
-        rel = 100 * (tf.tau_s[:, 0] - crds.tau_s[:, 0]) / crds.tau_s[:, 0]
-        axes[3].plot((tf.nu_hz - bundle.sample.nu0_hz) / 1e9, rel, ".", color="tab:purple")
-        axes[3].set_ylabel("(tau_TF - tau)/tau (%)")
-        axes[3].set_xlabel("detuning (GHz)")
-        axes[0].set_title(f"{name}: spectra at t_cut = {tc * 1e6:g} us (letter Fig. 3)")
-        rep.add_figure(fig, f"{name}: CRDS and TF-CRDS spectra with {study.profile} fits, normalised residuals, and the "
-                            "relative difference of TF-corrected and apparent decay times across the line.")
-        numbers[name] = {"tau_difference_pct_min": float(np.nanmin(rel)), "tau_difference_pct_max": float(np.nanmax(rel)),
-                         "chi2_red_crds": fc.chi2_red, "chi2_red_tf": ft.chi2_red,
-                         "refined_f_c_hz": cal.params.f_c_hz, "beat_f_c_hz": cal.beat.params.f_c_hz}
-        rep.add_summary(f"{name}: tau correction across the line", f"{np.nanmin(rel):+.2f} % to {np.nanmax(rel):+.2f} %",
-                        "letter: D2 -0.04 % to -2.4 %, D4 -0.6 % to -16 %")
-        rep.add_summary(f"{name}: spectrum fit chi2_red CRDS / TF-CRDS", f"{fc.chi2_red:.1f} / {ft.chi2_red:.2f}")
-        rep.add_diagnostic(f"{name}: TF-CRDS spectrum residuals consistent with noise", ft.chi2_red < 2,
-                           f"chi2_red = {ft.chi2_red:.2f}")
+        longest = int(np.nanargmax(tf.tau_s[:, 0])), int(np.nanargmin(tf.tau_s[:, 0]))
+        _figure_transfer_function(plt, rep, name, cfg, cal, tf, longest, tc)
+        _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, longest, tc)
+        rel, fc, ft = _figure_spectra(plt, rep, name, study, bundle, crds, tf, gd, tc)
+        numbers[name] = {
+            "tau_difference_pct_min": float(np.nanmin(rel)),
+            "tau_difference_pct_max": float(np.nanmax(rel)),
+            "chi2_red_crds": fc.chi2_red,
+            "chi2_red_tf": ft.chi2_red,
+            "refined_f_c_hz": cal.params.f_c_hz,
+            "beat_f_c_hz": cal.beat.params.f_c_hz,
+        }
+        rep.add_summary(
+            f"{name}: tau correction across the line",
+            f"{np.nanmin(rel):+.2f} % to {np.nanmax(rel):+.2f} %",
+            "letter: D2 -0.04 % to -2.4 %, D4 -0.6 % to -16 %",
+        )
+        rep.add_summary(
+            f"{name}: spectrum fit chi2_red CRDS / TF-CRDS",
+            f"{fc.chi2_red:.1f} / {ft.chi2_red:.2f}",
+        )
+        rep.add_diagnostic(
+            f"{name}: TF-CRDS spectrum residuals consistent with noise",
+            ft.chi2_red < 2,
+            f"chi2_red = {ft.chi2_red:.2f}",
+        )
     return numbers
+
 
 def window_history(study, bundle, truth, rep, out=None, progress=False, pool=None):
     """TF-CRDS with the letter window against the extinction window, across t_cut and chains."""
@@ -142,30 +230,62 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
             numbers[f"{name}_{window}_refined_f_c_hz"] = cal.params.f_c_hz
             vals = []
             for tc in study.t_cuts_s:
-                r = analyse_line(bundle, cfg, method="tf-crds", window=window, t_cut_s=tc, profile_name=study.profile,
-                                 calibration=cal)
+                r = analyse_line(
+                    bundle,
+                    cfg,
+                    method="tf-crds",
+                    window=window,
+                    t_cut_s=tc,
+                    profile_name=study.profile,
+                    calibration=cal,
+                )
                 ref = a_true if a_true is not None else float(r.reference_fit.line_area)
                 vals.append(float(r.line_fit.line_area) / ref - 1)
-                rows.append([name, window, f"{tc * 1e6:g}", f"{100 * vals[-1]:+.3f}", f"{r.chi2_red:.2f}"])
-                numbers["rows"].append({"config": name, "window": window, "t_cut_s": tc, "bias": vals[-1],
-                                        "chi2_red": r.chi2_red})
-            ax.plot(np.array(study.t_cuts_s) * 1e6, 100 * np.array(vals), mk + ("--" if window == "letter" else "-"),
-                    label=f"{name} {window}")
-        worst = max(abs(r["bias"]) for r in numbers["rows"] if r["config"] == name and r["window"] == "extinction")
-        rep.add_diagnostic(f"{name}: extinction window bias below 0.1 %", worst < 1e-3, f"max |bias| {100 * worst:.3f} %")
+                rows.append(
+                    [name, window, f"{tc * 1e6:g}", f"{100 * vals[-1]:+.3f}", f"{r.chi2_red:.2f}"]
+                )
+                numbers["rows"].append(
+                    {
+                        "config": name,
+                        "window": window,
+                        "t_cut_s": tc,
+                        "bias": vals[-1],
+                        "chi2_red": r.chi2_red,
+                    }
+                )
+            ax.plot(
+                np.array(study.t_cuts_s) * 1e6,
+                100 * np.array(vals),
+                mk + ("--" if window == "letter" else "-"),
+                label=f"{name} {window}",
+            )
+        worst = max(
+            abs(r["bias"])
+            for r in numbers["rows"]
+            if r["config"] == name and r["window"] == "extinction"
+        )
+        rep.add_diagnostic(
+            f"{name}: extinction window bias below 0.1 %",
+            worst < 1e-3,
+            f"max |bias| {100 * worst:.3f} %",
+        )
     ax.axhline(0, color="0.5", lw=0.8)
     ax.set_xlabel("t_cut (us)")
     ax.set_ylabel("A/A_true - 1 (%)" if a_true is not None else "A/A_ref - 1 (%)")
     ax.legend(fontsize=7, ncol=2)
     ax.set_title("TF-CRDS line area: letter window (squares) vs extinction window (circles)")
-    rep.add_figure(fig, "Each pipeline refines f_c with its own window, then fits every t_cut. The letter's window "
-                        "models the history before t_cut as flat; with a chain whose memory lasts microseconds "
-                        "that misrepresents the signal the chain has seen, and the refined f_c absorbs only part of "
-                        "it. The extinction window models the history that really was there.")
+    rep.add_figure(
+        fig,
+        "Each pipeline refines f_c with its own window, then fits every t_cut. The letter's "
+        "window models the history before t_cut as flat; with a chain whose memory lasts "
+        "microseconds that misrepresents the signal the chain has seen, and the refined f_c "
+        "absorbs only part of it. The extinction window models the history that really was there.",
+    )
     rep.add_table(["config", "window", "t_cut (us)", "A/A_true - 1 (%)", "chi2_red"], rows)
     for name in bundle.configs:
         for w in ("letter", "extinction"):
             b = [r["bias"] for r in numbers["rows"] if r["config"] == name and r["window"] == w]
-            rep.add_summary(f"{name}: {w} window bias range", f"{100 * min(b):+.3f} % to {100 * max(b):+.3f} %")
+            rep.add_summary(
+                f"{name}: {w} window bias range", f"{100 * min(b):+.3f} % to {100 * max(b):+.3f} %"
+            )
     return numbers
-

@@ -1,5 +1,7 @@
-"""Declarative studies: a short TOML file says what to simulate (or load) and analyse; the runner
-does it and writes a self-contained report.
+"""Declarative studies.
+
+A short TOML file says what to simulate (or load) and analyse; the runner does it and writes a
+self-contained report.
 
 Study file layout (every key optional unless marked)::
 
@@ -23,7 +25,7 @@ Study file layout (every key optional unless marked)::
     t_cuts_us = [2, 3, 4, 5, 6, 8]
     t_cut_us = 4                  # the t_cut of single-t_cut results
     profile = "qsdhcp"
-    shape_bounds = "free"         # free | physical (Gamma2, nu_VC >= 0, as the letter reads its fits)
+    shape_bounds = "free"         # free | physical (Gamma2, nu_VC >= 0, as the letter reads fits)
     windows = ["extinction"]
     mcmc_steps = 3000             # budgets: MCMC steps per ensemble before the gates are checked
     posterior = "laplace"         # coverage: the budget's posterior, laplace | mcmc
@@ -39,19 +41,36 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-
 SCHEMA = {
     "study": {"name": str, "title": str, "description": str, "kind": str, "seed": int},
-    "campaign": {"presets": [str], "points": int, "samples": int, "averages": int, "effects": [str], "bundle": str,
-                 "campaigns": int},
-    "analysis": {"methods": [str], "t_cuts_us": [float], "t_cut_us": float, "profile": str, "shape_bounds": str,
-                 "windows": [str], "mcmc_steps": int, "posterior": str, "mcmc_campaigns": int},
+    "campaign": {
+        "presets": [str],
+        "points": int,
+        "samples": int,
+        "averages": int,
+        "effects": [str],
+        "bundle": str,
+        "campaigns": int,
+    },
+    "analysis": {
+        "methods": [str],
+        "t_cuts_us": [float],
+        "t_cut_us": float,
+        "profile": str,
+        "shape_bounds": str,
+        "windows": [str],
+        "mcmc_steps": int,
+        "posterior": str,
+        "mcmc_campaigns": int,
+    },
 }
 
 KINDS = ("tcut", "figures", "window_history", "budgets", "coverage")
 
+
 class StudyError(ValueError):
     """The study file is invalid: the message names the key and what is wrong."""
+
 
 @dataclass(frozen=True)
 class Study:
@@ -79,6 +98,7 @@ class Study:
     mcmc_campaigns: int = 0
     shape_bounds: str = "free"
 
+
 def _check_type(where, value, kind):
     if isinstance(kind, list):
         if not isinstance(value, list):
@@ -95,62 +115,97 @@ def _check_type(where, value, kind):
     if not ok:
         raise StudyError(f"{where}: expected {kind.__name__}, got {value!r}")
 
-def load_study(path) -> Study:
-    """Parse and validate a study file; raise :class:`StudyError` naming the bad key."""
-    path = Path(path)
+
+def _read(path: Path) -> tuple[str, dict]:
+    """The file's text and its TOML tables; a missing or invalid file is refused."""
     try:
         text = path.read_text(encoding="utf-8")
         raw = tomllib.loads(text)
     except FileNotFoundError:
-        raise StudyError(f"{path}: no such study file")
+        raise StudyError(f"{path}: no such study file") from None
     except tomllib.TOMLDecodeError as exc:
-        raise StudyError(f"{path}: not valid TOML ({exc})")
+        raise StudyError(f"{path}: not valid TOML ({exc})") from None
+    return text, raw
+
+
+def _check_schema(path: Path, raw: dict) -> None:
+    """Every section and key known (with a hint for a near miss), every value of its type."""
     for section, body in raw.items():
         if section not in SCHEMA:
             hint = difflib.get_close_matches(section, SCHEMA, n=1)
-            raise StudyError(f"{path}: unknown section [{section}]" + (f" (did you mean [{hint[0]}]?)" if hint else ""))
+            raise StudyError(
+                f"{path}: unknown section [{section}]"
+                + (f" (did you mean [{hint[0]}]?)" if hint else "")
+            )
         if not isinstance(body, dict):
             raise StudyError(f"{path}: {section} must be a table [{section}]")
         for key, value in body.items():
             if key not in SCHEMA[section]:
                 hint = difflib.get_close_matches(key, SCHEMA[section], n=1)
-                raise StudyError(f"{path}: unknown key {section}.{key}" + (f" (did you mean {section}.{hint[0]}?)" if hint else ""))
+                raise StudyError(
+                    f"{path}: unknown key {section}.{key}"
+                    + (f" (did you mean {section}.{hint[0]}?)" if hint else "")
+                )
             _check_type(f"{path}: {section}.{key}", value, SCHEMA[section][key])
-    st, cp, an = raw.get("study", {}), raw.get("campaign", {}), raw.get("analysis", {})
+
+
+def _check_study_and_campaign(path: Path, st: dict, cp: dict) -> None:
+    """Required keys, the study kind, presets, effects and the campaign's sizes."""
     for key in ("name", "kind"):
         if key not in st:
             raise StudyError(f"{path}: missing required key study.{key}")
     if st["kind"] not in KINDS:
         raise StudyError(f"{path}: study.kind must be one of {KINDS}, got {st['kind']!r}")
     from bayes_tfcrds.simulate.campaign import PRESETS, parse_effect
+
     for i, p in enumerate(cp.get("presets", [])):
         if p not in PRESETS:
-            raise StudyError(f"{path}: campaign.presets[{i}] = {p!r} is not a preset ({sorted(PRESETS)})")
+            raise StudyError(
+                f"{path}: campaign.presets[{i}] = {p!r} is not a preset ({sorted(PRESETS)})"
+            )
     for i, e in enumerate(cp.get("effects", [])):
         try:
             parse_effect(e)
         except ValueError as exc:
-            raise StudyError(f"{path}: campaign.effects[{i}]: {exc}")
-    for key, lo, hi in (("points", 8, 2000), ("samples", 256, 1 << 20), ("averages", 1, 100000),
-                        ("campaigns", 1, 100000)):
+            raise StudyError(f"{path}: campaign.effects[{i}]: {exc}") from None
+    for key, lo, hi in (
+        ("points", 8, 2000),
+        ("samples", 256, 1 << 20),
+        ("averages", 1, 100000),
+        ("campaigns", 1, 100000),
+    ):
         if key in cp and not lo <= cp[key] <= hi:
             raise StudyError(f"{path}: campaign.{key} = {cp[key]} is outside [{lo}, {hi}]")
+
+
+def _check_analysis(path: Path, st: dict, cp: dict, an: dict) -> tuple:
+    """The analysis choices; returns the t_cuts in s."""
     if an.get("posterior", "mcmc") not in ("mcmc", "laplace"):
-        raise StudyError(f"{path}: analysis.posterior must be 'mcmc' or 'laplace', got {an['posterior']!r}")
+        raise StudyError(
+            f"{path}: analysis.posterior must be 'mcmc' or 'laplace', got {an['posterior']!r}"
+        )
     if an.get("mcmc_campaigns", 0) < 0:
         raise StudyError(f"{path}: analysis.mcmc_campaigns must be >= 0")
     if st["kind"] == "coverage" and ("bundle" in cp or "effects" in cp):
-        raise StudyError(f"{path}: a coverage study simulates its own campaigns: campaign.bundle and "
-                         "campaign.effects do not apply")
+        raise StudyError(
+            f"{path}: a coverage study simulates its own campaigns: campaign.bundle and "
+            "campaign.effects do not apply"
+        )
     for i, m in enumerate(an.get("methods", [])):
         if m not in ("crds", "tf-crds"):
             raise StudyError(f"{path}: analysis.methods[{i}] = {m!r} must be 'crds' or 'tf-crds'")
     for i, w in enumerate(an.get("windows", [])):
         if w not in ("extinction", "letter"):
-            raise StudyError(f"{path}: analysis.windows[{i}] = {w!r} must be 'extinction' or 'letter'")
+            raise StudyError(
+                f"{path}: analysis.windows[{i}] = {w!r} must be 'extinction' or 'letter'"
+            )
     if an.get("shape_bounds", "free") not in ("free", "physical"):
-        raise StudyError(f"{path}: analysis.shape_bounds must be 'free' or 'physical', got {an['shape_bounds']!r}")
+        raise StudyError(
+            f"{path}: analysis.shape_bounds must be 'free' or 'physical', got "
+            f"{an['shape_bounds']!r}"
+        )
     from bayes_tfcrds.physics.lineshape import PROFILES
+
     if an.get("profile", "qsdhcp") not in PROFILES:
         raise StudyError(f"{path}: analysis.profile must be one of {sorted(PROFILES)}")
     t_cuts = tuple(float(v) * 1e-6 for v in an.get("t_cuts_us", [2, 3, 4, 5, 6, 8]))
@@ -158,18 +213,42 @@ def load_study(path) -> Study:
         raise StudyError(f"{path}: analysis.t_cuts_us must be positive")
     if "bundle" in cp and ("presets" in cp or "effects" in cp):
         raise StudyError(f"{path}: campaign.bundle excludes campaign.presets and campaign.effects")
+    return t_cuts
+
+
+def load_study(path) -> Study:
+    """Parse and validate a study file; raise :class:`StudyError` naming the bad key."""
+    path = Path(path)
+    text, raw = _read(path)
+    _check_schema(path, raw)
+    st, cp, an = raw.get("study", {}), raw.get("campaign", {}), raw.get("analysis", {})
+    _check_study_and_campaign(path, st, cp)
+    t_cuts = _check_analysis(path, st, cp, an)
     bundle = cp.get("bundle")
     if bundle is not None and not Path(bundle).is_absolute():
         bundle = str((path.parent / bundle).resolve())
-    return Study(name=st["name"], kind=st["kind"], title=st.get("title", st["name"]),
-                 description=st.get("description", ""), seed=st.get("seed", 7),
-                 presets=tuple(cp.get("presets", ["letter-D1", "letter-D2", "letter-D3", "letter-D4"])),
-                 points=cp.get("points", 101), samples=cp.get("samples", 16384), averages=cp.get("averages", 100),
-                 effects=tuple(cp.get("effects", [])), bundle=bundle,
-                 methods=tuple(an.get("methods", ["crds", "tf-crds"])), t_cuts_s=t_cuts,
-                 t_cut_s=float(an.get("t_cut_us", 4)) * 1e-6, profile=an.get("profile", "qsdhcp"),
-                 windows=tuple(an.get("windows", ["extinction"])), mcmc_steps=an.get("mcmc_steps", 3000),
-                 path=str(path), text=text, n_campaigns=cp.get("campaigns", 200),
-                 posterior=an.get("posterior", "mcmc"), mcmc_campaigns=an.get("mcmc_campaigns", 0),
-                 shape_bounds=an.get("shape_bounds", "free"))
-
+    return Study(
+        name=st["name"],
+        kind=st["kind"],
+        title=st.get("title", st["name"]),
+        description=st.get("description", ""),
+        seed=st.get("seed", 7),
+        presets=tuple(cp.get("presets", ["letter-D1", "letter-D2", "letter-D3", "letter-D4"])),
+        points=cp.get("points", 101),
+        samples=cp.get("samples", 16384),
+        averages=cp.get("averages", 100),
+        effects=tuple(cp.get("effects", [])),
+        bundle=bundle,
+        methods=tuple(an.get("methods", ["crds", "tf-crds"])),
+        t_cuts_s=t_cuts,
+        t_cut_s=float(an.get("t_cut_us", 4)) * 1e-6,
+        profile=an.get("profile", "qsdhcp"),
+        windows=tuple(an.get("windows", ["extinction"])),
+        mcmc_steps=an.get("mcmc_steps", 3000),
+        path=str(path),
+        text=text,
+        n_campaigns=cp.get("campaigns", 200),
+        posterior=an.get("posterior", "mcmc"),
+        mcmc_campaigns=an.get("mcmc_campaigns", 0),
+        shape_bounds=an.get("shape_bounds", "free"),
+    )

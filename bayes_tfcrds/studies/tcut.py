@@ -2,54 +2,77 @@
 
 from __future__ import annotations
 
-from bayes_tfcrds.output.plotting import pyplot
-
-
 import numpy as np
 
+from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.studies.common import parallel_map
 
-LETTER_BIAS = {"D1": (0.06, 41), "D2": (0.03, 87), "D3": (0.15, 74), "D4": (0.28, 43)}   # % and factor
+LETTER_BIAS = {
+    "D1": (0.06, 41),
+    "D2": (0.03, 87),
+    "D3": (0.15, 74),
+    "D4": (0.28, 43),
+}  # % and factor
+
 
 def _tcut_config(args):
     bundle_path, name, methods, t_cuts, profile, window, physical = args
-    from bayes_tfcrds.fit.h_calibration import calibrate
     from bayes_tfcrds.bundle.reader import load_bundle
+    from bayes_tfcrds.fit.h_calibration import calibrate
     from bayes_tfcrds.fit.line_analysis import analyse_line
+
     bundle = load_bundle(bundle_path)
     cfg = bundle.configs[name]
     cal = calibrate(cfg, window=window) if "tf-crds" in methods else None
     rows = []
     for m in methods:
         for tc in t_cuts:
-            r = analyse_line(bundle, cfg, method=m, window=window, t_cut_s=tc, profile_name=profile,
-                             calibration=cal if m == "tf-crds" else None, physical_bounds=physical)
-            rows.append({"config": name, "method": m, "t_cut_s": tc, "ratio": r.ratio.value,
-                         "ratio_u": r.ratio.u, "area_si": float(r.line_fit.line_area),
-                         "ref_si": float(r.reference_fit.line_area), "chi2_red": r.chi2_red,
-                         "shape_at_bound": r.shape_at_bound, "unphysical_shape": r.unphysical_shape})
+            r = analyse_line(
+                bundle,
+                cfg,
+                method=m,
+                window=window,
+                t_cut_s=tc,
+                profile_name=profile,
+                calibration=cal if m == "tf-crds" else None,
+                physical_bounds=physical,
+            )
+            rows.append(
+                {
+                    "config": name,
+                    "method": m,
+                    "t_cut_s": tc,
+                    "ratio": r.ratio.value,
+                    "ratio_u": r.ratio.u,
+                    "area_si": float(r.line_fit.line_area),
+                    "ref_si": float(r.reference_fit.line_area),
+                    "chi2_red": r.chi2_red,
+                    "shape_at_bound": r.shape_at_bound,
+                    "unphysical_shape": r.unphysical_shape,
+                }
+            )
     return rows
 
-def study_tcut(study, bundle, truth, rep, out, progress=False, pool=None):
-    plt = pyplot()
-    bpath = str(out / "campaign.h5") if study.bundle is None else study.bundle
-    window = study.windows[0]
-    jobs = [(bpath, name, study.methods, study.t_cuts_s, study.profile, window, study.shape_bounds == "physical")
-            for name in bundle.configs]
-    rows = [r for part in parallel_map(pool, _tcut_config, jobs) for r in part]
-    names = list(bundle.configs)
-    refs = np.array([next(r["ref_si"] for r in rows if r["config"] == n) for n in names])
-    band = (refs.min() / refs.mean() - 1, refs.max() / refs.mean() - 1)
-    numbers = {"rows": rows, "cmds_spread": [float(b) for b in band], "configs": {}}
-    fig, (ax_top, ax_all) = plt.subplots(2, 1, figsize=(7.5, 7.5), sharex=True,
-                                         gridspec_kw={"height_ratios": [1, 1.3]})
+
+def _tcut_figure(plt, rep, study, rows, names, band) -> tuple[dict, list]:
+    """Letter Fig. 5: A/A_ref against t_cut.
+
+    Returns each configuration's mean |A/A_ref - 1| by method (and their ratio) and the rows of
+    the bias-reduction table.
+    """
+    numbers = {"configs": {}}
+    fig, (ax_top, ax_all) = plt.subplots(
+        2, 1, figsize=(7.5, 7.5), sharex=True, gridspec_kw={"height_ratios": [1, 1.3]}
+    )
     colors = dict(zip(names, plt.cm.tab10(np.arange(len(names)))))
     for ax in (ax_top, ax_all):
         ax.axhspan(1 + band[0], 1 + band[1], color="0.85", label="CMDS A_ref spread")
         ax.axhline(1.0, color="0.4", lw=0.8)
     table = []
     for n in names:
-        cfg_rows = {m: [r for r in rows if r["config"] == n and r["method"] == m] for m in study.methods}
+        cfg_rows = {
+            m: [r for r in rows if r["config"] == n and r["method"] == m] for m in study.methods
+        }
         entry = {}
         for m, mk in (("crds", "+"), ("tf-crds", "o")):
             if m not in cfg_rows:
@@ -65,48 +88,141 @@ def study_tcut(study, bundle, truth, rep, out, progress=False, pool=None):
             entry["factor"] = entry["crds"] / entry["tf-crds"]
         numbers["configs"][n] = entry
         lb, lf = LETTER_BIAS.get(n, (float("nan"), float("nan")))
-        table.append([n, f"{100 * entry.get('crds', np.nan):.2f}", f"{100 * entry.get('tf-crds', np.nan):.3f}",
-                      f"{lb:.2f}", f"{entry.get('factor', np.nan):.0f}", f"{lf:.0f}"])
+        table.append(
+            [
+                n,
+                f"{100 * entry.get('crds', np.nan):.2f}",
+                f"{100 * entry.get('tf-crds', np.nan):.3f}",
+                f"{lb:.2f}",
+                f"{entry.get('factor', np.nan):.0f}",
+                f"{lf:.0f}",
+            ]
+        )
     ax_top.set_ylabel("A/A_ref (TF-CRDS)")
     ax_all.set_ylabel("A/A_ref")
     ax_all.set_xlabel("t_cut (us)")
     ax_all.legend(fontsize=7, ncol=2)
     ax_top.legend(fontsize=7, ncol=4)
     ax_top.set_title("Line area relative to CMDS against t_cut (letter Fig. 5)")
-    rep.add_figure(fig, "A/A_ref against t_cut for every configuration: CRDS (+) and TF-CRDS (o); grey: the spread "
-                        "of the configurations' CMDS references. Top: TF-CRDS magnified.")
-    rep.add_heading("Bias reduction (mean |A/A_ref - 1| over the t_cut range)")
-    rep.add_table(["config", "CRDS bias (%)", "TF-CRDS bias (%)", "letter TF-CRDS bias (%)", "reduction factor",
-                   "letter factor"], table)
+    rep.add_figure(
+        fig,
+        "A/A_ref against t_cut for every configuration: CRDS (+) and TF-CRDS (o); grey: the "
+        "spread of the configurations' CMDS references. Top: TF-CRDS magnified.",
+    )
+    return numbers["configs"], table
+
+
+def _tcut_summaries(rep, study, rows, numbers, names, band) -> None:
+    """Summary lines and diagnostics: each configuration's bias, the CMDS spread, the fits."""
     for n in names:
         e = numbers["configs"][n]
-        rep.add_summary(f"{n}: TF-CRDS mean |A/A_ref - 1|", f"{100 * e.get('tf-crds', np.nan):.3f} %",
-                        f"letter {LETTER_BIAS.get(n, ('?',))[0]} %; CRDS {100 * e.get('crds', np.nan):.2f} %")
-        rep.add_diagnostic(f"{n}: TF-CRDS bias below 0.1 %", e.get("tf-crds", 1) < 1e-3,
-                           f"{100 * e.get('tf-crds', np.nan):.3f} %")
-    rep.add_summary("CMDS A_ref spread across configurations", f"{100 * (band[1] - band[0]):.3f} %", "letter: < 0.06 %")
+        rep.add_summary(
+            f"{n}: TF-CRDS mean |A/A_ref - 1|",
+            f"{100 * e.get('tf-crds', np.nan):.3f} %",
+            f"letter {LETTER_BIAS.get(n, ('?',))[0]} %; CRDS {100 * e.get('crds', np.nan):.2f} %",
+        )
+        rep.add_diagnostic(
+            f"{n}: TF-CRDS bias below 0.1 %",
+            e.get("tf-crds", 1) < 1e-3,
+            f"{100 * e.get('tf-crds', np.nan):.3f} %",
+        )
+    rep.add_summary(
+        "CMDS A_ref spread across configurations",
+        f"{100 * (band[1] - band[0]):.3f} %",
+        "letter: < 0.06 %",
+    )
     for r in rows:
         if r["method"] == "tf-crds":
-            rep.add_diagnostic(f"{r['config']} TF-CRDS t_cut {r['t_cut_s'] * 1e6:g} us: line-fit chi2_red < 2",
-                               r["chi2_red"] < 2, f"{r['chi2_red']:.2f}")
-    rep.add_text("The comparison with CMDS is limited by the reference's own noise (the grey band); the table "
-                 "against the simulation's truth below separates the two.")
+            rep.add_diagnostic(
+                f"{r['config']} TF-CRDS t_cut {r['t_cut_s'] * 1e6:g} us: line-fit chi2_red < 2",
+                r["chi2_red"] < 2,
+                f"{r['chi2_red']:.2f}",
+            )
+    rep.add_text(
+        "The comparison with CMDS is limited by the reference's own noise (the grey band); the "
+        "table against the simulation's truth below separates the two."
+    )
     if study.shape_bounds == "physical":
-        rep.add_text("Line fits hold Gamma2 and nu_VC at >= 0 (analysis.shape_bounds = 'physical'), reading the "
-                     "CRDS spectra as physical line shapes as the letter does. On a spectrum distorted by an "
-                     "uncorrected H the free estimator would follow the distortion below 0 and give a different "
-                     "(larger) CRDS bias; the TF-CRDS fits do not reach the bounds.")
+        rep.add_text(
+            "Line fits hold Gamma2 and nu_VC at >= 0 (analysis.shape_bounds = 'physical'), "
+            "reading the CRDS spectra as physical line shapes as the letter does. On a spectrum "
+            "distorted by an uncorrected H the free estimator would follow the distortion below 0 "
+            "and give a different (larger) CRDS bias; the TF-CRDS fits do not reach the bounds."
+        )
     else:
-        rep.add_text("Line fits leave Gamma2 and nu_VC free on the qSDHCP continuation (unbiased when the model is "
-                     "right); a fit that ends below 0 is named in the last column of the table below.")
-    if truth is not None:
-        a_true = truth["line"]["line_area_hz_per_m"]
-        rep.add_heading("Against the simulation's truth")
-        rep.add_table(["config", "method", "t_cut (us)", "A/A_true - 1 (%)", "A_ref/A_true - 1 (%)",
-                       "line-fit chi2_red", "shape held at 0 / below 0"],
-                      [[r["config"], r["method"], f"{r['t_cut_s'] * 1e6:g}", f"{100 * (r['area_si'] / a_true - 1):+.3f}",
-                        f"{100 * (r['ref_si'] / a_true - 1):+.3f}", f"{r['chi2_red']:.1f}",
-                        ", ".join(r["shape_at_bound"] + [n + " < 0" for n in r["unphysical_shape"]]) or "-"]
-                       for r in rows])
-    return numbers
+        rep.add_text(
+            "Line fits leave Gamma2 and nu_VC free on the qSDHCP continuation (unbiased when the "
+            "model is right); a fit that ends below 0 is named in the last column of the table "
+            "below."
+        )
 
+
+def _truth_table(rep, truth, rows) -> None:
+    """A and A_ref against the simulation's truth (no table for a measured bundle)."""
+    if truth is None:
+        return
+    a_true = truth["line"]["line_area_hz_per_m"]
+    rep.add_heading("Against the simulation's truth")
+    rep.add_table(
+        [
+            "config",
+            "method",
+            "t_cut (us)",
+            "A/A_true - 1 (%)",
+            "A_ref/A_true - 1 (%)",
+            "line-fit chi2_red",
+            "shape held at 0 / below 0",
+        ],
+        [
+            [
+                r["config"],
+                r["method"],
+                f"{r['t_cut_s'] * 1e6:g}",
+                f"{100 * (r['area_si'] / a_true - 1):+.3f}",
+                f"{100 * (r['ref_si'] / a_true - 1):+.3f}",
+                f"{r['chi2_red']:.1f}",
+                ", ".join(r["shape_at_bound"] + [n + " < 0" for n in r["unphysical_shape"]]) or "-",
+            ]
+            for r in rows
+        ],
+    )
+
+
+def study_tcut(study, bundle, truth, rep, out, progress=False, pool=None):
+    """The ``tcut`` study: A/A_ref against t_cut for every configuration and method (Fig. 5)."""
+    plt = pyplot()
+    bpath = str(out / "campaign.h5") if study.bundle is None else study.bundle
+    window = study.windows[0]
+    jobs = [
+        (
+            bpath,
+            name,
+            study.methods,
+            study.t_cuts_s,
+            study.profile,
+            window,
+            study.shape_bounds == "physical",
+        )
+        for name in bundle.configs
+    ]
+    rows = [r for part in parallel_map(pool, _tcut_config, jobs) for r in part]
+    names = list(bundle.configs)
+    refs = np.array([next(r["ref_si"] for r in rows if r["config"] == n) for n in names])
+    band = (refs.min() / refs.mean() - 1, refs.max() / refs.mean() - 1)
+    numbers = {"rows": rows, "cmds_spread": [float(b) for b in band], "configs": {}}
+    numbers["configs"], table = _tcut_figure(plt, rep, study, rows, names, band)
+    rep.add_heading("Bias reduction (mean |A/A_ref - 1| over the t_cut range)")
+    rep.add_table(
+        [
+            "config",
+            "CRDS bias (%)",
+            "TF-CRDS bias (%)",
+            "letter TF-CRDS bias (%)",
+            "reduction factor",
+            "letter factor",
+        ],
+        table,
+    )
+    _tcut_summaries(rep, study, rows, numbers, names, band)
+    _truth_table(rep, truth, rows)
+    return numbers

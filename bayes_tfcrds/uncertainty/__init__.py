@@ -1,5 +1,7 @@
-"""Uncertainty of the line area: propagation of H into tau and A, the posteriors the budget
-samples, the GUM budget of A, S and A/A_ref (run_budget), and its output files.
+"""Uncertainty of the line area.
+
+Propagation of H into tau and A, the posteriors the budget samples, the GUM budget of A, S and
+A/A_ref (run_budget), and its output files.
 
 May import: core, output, bundle, physics, fit, inference.
 """

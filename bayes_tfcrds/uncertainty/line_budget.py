@@ -8,7 +8,7 @@ Pipeline (each step a function of the bundle, the options and the seed):
    refinement's estimating equations, with its sandwich covariance, because the same record enters
    once per t_cut).
 2. **Decay times** at every spectral point and t_cut with the refined H; a draw of H moves them
-   all at once through d tau/d theta (:mod:`bayes_tfcrds.propagate`).
+   all at once through d tau/d theta (:mod:`bayes_tfcrds.uncertainty.propagate`).
 3. **Line posterior.** emcee on the line parameters given the spectrum at the chosen t_cut; each
    posterior sample is shifted by the change of the line estimate that one H draw causes, so the
    H uncertainty enters as a correlated shift of the whole spectrum, never as independent noise.
@@ -28,7 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import C, intensity_to_cm_per_molecule, line_area_to_cm2, number_density
+from bayes_tfcrds.core.constants import (
+    C,
+    intensity_to_cm_per_molecule,
+    line_area_to_cm2,
+    number_density,
+)
 from bayes_tfcrds.core.gum import Budget, Component, normalized_error
 from bayes_tfcrds.core.linalg import central_hessian
 from bayes_tfcrds.core.quantity import Quantity
@@ -38,8 +43,12 @@ from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.physics.linedata import load_line
-from bayes_tfcrds.uncertainty.posterior_steps import (fit_transients_noise, h_posterior, line_draws,
-                                                      line_mcmc)
+from bayes_tfcrds.uncertainty.posterior_steps import (
+    fit_transients_noise,
+    h_posterior,
+    line_draws,
+    line_mcmc,
+)
 from bayes_tfcrds.uncertainty.propagate import line_gain, tau_influence, tau_sensitivities
 
 H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
@@ -57,21 +66,24 @@ class BudgetOptions:
     alt_profile: str = "sdvp"
     refine_free: tuple = ("f_c_hz",)
     n_refine_points: int = 6
-    posterior: str = "mcmc"          # or "laplace": Gaussian posteriors from the least-squares fits
+    posterior: str = "mcmc"  # or "laplace": Gaussian posteriors from the least-squares fits
     n_ensembles: int = 4
     n_steps: int = 2500
     max_steps: int = 24000
     n_h_draws: int = 1000
 
     def with_steps(self, n_steps: int | None = None, max_steps: int | None = None) -> BudgetOptions:
-        """These options with ``n_steps`` per ensemble before the gates are checked and at most
-        ``max_steps`` (default max(8 n_steps, the current max_steps)); refuses n_steps outside
-        [1, max_steps]."""
+        """These options with other sampler lengths.
+
+        ``n_steps`` per ensemble before the gates are checked and at most ``max_steps`` (default
+        max(8 n_steps, the current max_steps)); refuses n_steps outside [1, max_steps].
+        """
         n = self.n_steps if n_steps is None else int(n_steps)
         most = max(n * 8, self.max_steps) if max_steps is None else int(max_steps)
         if not 1 <= n <= most:
             raise ValueError(f"need 1 <= --steps ({n}) <= --max-steps ({most})")
         return replace(self, n_steps=n, max_steps=most)
+
 
 @dataclass(frozen=True)
 class BudgetResult:
@@ -97,7 +109,9 @@ class BudgetResult:
 
     def _quantity(self, key: str) -> Quantity | None:
         entry = self.summary.get(key)
-        return None if entry is None else Quantity(entry["value"], entry["u"], entry.get("unit", ""))
+        return (
+            None if entry is None else Quantity(entry["value"], entry["u"], entry.get("unit", ""))
+        )
 
     @property
     def line_area(self) -> Quantity | None:
@@ -124,10 +138,14 @@ class BudgetResult:
         """E_n of A against A_ref (k = 2); None without CMDS or for a failed run."""
         return self.summary.get("en")
 
+
 @dataclass(frozen=True)
 class _Inputs:
-    """What every step reads: the configuration, the line's Doppler width and centre (Hz), the
-    random streams and the chain files' stem (None: chains in memory)."""
+    """What every step reads.
+
+    The configuration, the line's Doppler width and centre (Hz), the random streams and the chain
+    files' stem (None: chains in memory).
+    """
 
     config: object
     sample: object
@@ -144,7 +162,7 @@ class _Inputs:
 
 @dataclass(frozen=True)
 class _DecayTimes:
-    """Step 2: decay times at every t_cut, A per t_cut (Hz/m), and the line fits at the chosen one."""
+    """Step 2: decay times at every t_cut, A per t_cut (Hz/m), the line fits at the chosen one."""
 
     fits: object
     t_cuts: np.ndarray
@@ -157,8 +175,11 @@ class _DecayTimes:
 
 @dataclass(frozen=True)
 class _HSensitivity:
-    """Step 4: how A moves with H: the gradient (Hz/m per unit), its curvature, and the pieces of the
-    chain rule through each tau (the usable rows ``good``, dA/d(alpha), d(alpha)/d(tau))."""
+    """Step 4.
+
+    How A moves with H: the gradient (Hz/m per unit), its curvature, and the pieces of the chain
+    rule through each tau (the usable rows ``good``, dA/d(alpha), d(alpha)/d(tau)).
+    """
 
     good: np.ndarray
     k_gain: np.ndarray
@@ -169,9 +190,12 @@ class _HSensitivity:
 
 @dataclass(frozen=True)
 class _HSplit:
-    """One H draw is delta = (G delta_O + eps_refine, delta_O): the beat-note parameters O enter with
-    total derivatives (directly and through the refined parameters' conditional), the refined ones
-    with their refinement scatter eps (ring-down noise acting through H)."""
+    """One H draw is delta = (G delta_O + eps_refine, delta_O).
+
+    The beat-note parameters O enter with total derivatives (directly and through the refined
+    parameters' conditional), the refined ones with their refinement scatter eps (ring-down noise
+    acting through H).
+    """
 
     others: tuple
     refined: tuple
@@ -182,8 +206,11 @@ class _HSplit:
 
 
 def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
-    """Refuse what cannot work before minutes of sampling (t_cut outside the record, CMDS
-    elsewhere); spawn the four random streams; place the chain files."""
+    """Check the inputs, spawn the four random streams, place the chain files.
+
+    Refuses what cannot work before minutes of sampling (t_cut outside the record, CMDS
+    elsewhere).
+    """
     check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
     check_overlap(config)
     streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
@@ -191,16 +218,29 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     if outdir is not None:
         Path(outdir).mkdir(parents=True, exist_ok=True)
         backend = str(Path(outdir) / "chains.h5")
-    return _Inputs(config, bundle.sample, options, doppler_of(bundle.sample), bundle.sample.nu0_hz, streams,
-                   backend, progress)
+    return _Inputs(
+        config,
+        bundle.sample,
+        options,
+        doppler_of(bundle.sample),
+        bundle.sample.nu0_hz,
+        streams,
+        backend,
+        progress,
+    )
 
 
 def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
-    """Step 2: decay times at all t_cuts with H*, a least-squares line fit per t_cut (for the t_cut
-    row) and, at the chosen t_cut, the profile and its alternative."""
+    """Step 2.
+
+    Decay times at all t_cuts with H*, a least-squares line fit per t_cut (for the t_cut row) and,
+    at the chosen t_cut, the profile and its alternative.
+    """
     options, gd, nu_ref = inp.options, inp.gd, inp.nu_ref
     t_cuts = np.asarray(sorted(set(options.t_cuts_s) | {options.t_cut_s}), float)
-    fits = fit_ringdowns(inp.config.ringdowns, t_cuts, method=options.method, tf=h_star, window=options.window)
+    fits = fit_ringdowns(
+        inp.config.ringdowns, t_cuts, method=options.method, tf=h_star, window=options.window
+    )
     j0 = int(np.nonzero(np.isclose(t_cuts, options.t_cut_s))[0][0])
     area_by_tcut = {}
     for j, tc in enumerate(t_cuts):
@@ -216,33 +256,69 @@ def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
     """Step 3: draws of the line parameters given H* (Laplace, or emcee stored in ``runs``)."""
     if inp.options.posterior == "laplace":
         return line_draws(dt.lsq, inp.streams["line"])
-    runs["line"] = line_mcmc([dt.spec], inp.options.profile, inp.gd, inp.nu_ref, dt.lsq, inp.streams["line"],
-                             inp.options, inp.chain_file("line"), inp.progress, "line | CRDS")
+    runs["line"] = line_mcmc(
+        [dt.spec],
+        inp.options.profile,
+        inp.gd,
+        inp.nu_ref,
+        dt.lsq,
+        inp.streams["line"],
+        inp.options,
+        inp.chain_file("line"),
+        inp.progress,
+        "line | CRDS",
+    )
     return runs["line"].flat()
 
 
 def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> _HSensitivity:
-    """Step 4: dA/dtheta_H through every tau (implicit-function derivatives and the line fit's gain)
-    and, to second order, the Hessian of A from full refits at +-1 sd of each H parameter (a
-    1-sigma H draw bends A by ~2 % of u(A) beyond the tangent)."""
+    """Step 4.
+
+    DA/dtheta_H through every tau (implicit-function derivatives and the line fit's gain) and, to
+    second order, the Hessian of A from full refits at +-1 sd of each H parameter (a 1-sigma H draw
+    bends A by ~2 % of u(A) beyond the tangent).
+    """
     options, rd, fits, j0 = inp.options, inp.config.ringdowns, dt.fits, dt.j0
     ia = dt.lsq.names.index("line_area")
-    ok = np.isfinite(fits.tau_s[:, j0]) & np.isfinite(fits.tau_u_s[:, j0]) & (fits.tau_u_s[:, j0] > 0)
+    ok = (
+        np.isfinite(fits.tau_s[:, j0])
+        & np.isfinite(fits.tau_u_s[:, j0])
+        & (fits.tau_u_s[:, j0] > 0)
+    )
     good = np.nonzero(ok)[0]
-    s_tau = tau_sensitivities(rd.time_s, rd.signal_v, np.full(good.size, options.t_cut_s),
-                              fits.tau_s[good, j0], fits.amplitude_v[good, j0], h_star, BEAT_FREE,
-                              options.window, noise_v=rd.noise_v, rows_of=good)
-    k_gain = line_gain(dt.lsq)[ia]                                # dA/d(1/(c tau))
+    s_tau = tau_sensitivities(
+        rd.time_s,
+        rd.signal_v,
+        np.full(good.size, options.t_cut_s),
+        fits.tau_s[good, j0],
+        fits.amplitude_v[good, j0],
+        h_star,
+        BEAT_FREE,
+        options.window,
+        noise_v=rd.noise_v,
+        rows_of=good,
+    )
+    k_gain = line_gain(dt.lsq)[ia]  # dA/d(1/(c tau))
     dalpha_dtau = -1.0 / (C * fits.tau_s[good, j0] ** 2)
-    grad_a = (k_gain * dalpha_dtau) @ s_tau                       # dA/dtheta_H (Hz/m per unit)
+    grad_a = (k_gain * dalpha_dtau) @ s_tau  # dA/dtheta_H (Hz/m per unit)
     h_centre = h_star.as_vector(BEAT_FREE)
     h_sd = np.std(h_draws, axis=0)
 
     def area_at(v):
-        f = fit_ringdowns(rd, [options.t_cut_s], method="tf-crds", tf=h_star.with_vector(v, BEAT_FREE),
-                          window=options.window)
-        return fit_line([crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])], options.profile, inp.gd,
-                        inp.nu_ref).line_area
+        f = fit_ringdowns(
+            rd,
+            [options.t_cut_s],
+            method="tf-crds",
+            tf=h_star.with_vector(v, BEAT_FREE),
+            window=options.window,
+        )
+        return fit_line(
+            [crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])],
+            options.profile,
+            inp.gd,
+            inp.nu_ref,
+        ).line_area
+
     hess_a = central_hessian(area_at, h_centre, np.where(h_sd > 0, h_sd, 1e-6 * np.abs(h_centre)))
     return _HSensitivity(good, k_gain, dalpha_dtau, grad_a, hess_a)
 
@@ -256,11 +332,21 @@ def _h_split(h_star, h_parts: dict, grad_a) -> _HSplit:
     return _HSplit(others, refd, io, ir, h_star.as_vector(BEAT_FREE), total_o)
 
 
-def _noise_refinement_correlation(inp: _Inputs, dt: _DecayTimes, sens: _HSensitivity, h_star, refined,
-                                  h_parts: dict, split: _HSplit, u_dir: float) -> dict:
+def _noise_refinement_correlation(
+    inp: _Inputs,
+    dt: _DecayTimes,
+    sens: _HSensitivity,
+    h_star,
+    refined,
+    h_parts: dict,
+    split: _HSplit,
+    u_dir: float,
+) -> dict:
     """Ring-down noise reaches A twice: through each tau (the line fit) and through the refined H.
+
     The refinement records are also in the line fit, so the two are correlated; the delta method
-    (influence functions of both estimators on those records) gives r per refined parameter."""
+    (influence functions of both estimators on those records) gives r per refined parameter.
+    """
     options, rd, fits, j0 = inp.options, inp.config.ringdowns, dt.fits, dt.j0
     recs = h_parts["records"]
     pos = {int(g): i for i, g in enumerate(sens.good)}
@@ -269,10 +355,18 @@ def _noise_refinement_correlation(inp: _Inputs, dt: _DecayTimes, sens: _HSensiti
     noise_rec = None if rd.noise_v is None else np.asarray(rd.noise_v)[rec]
     if noise_rec is None:
         noise_rec = fit_transients_noise(rd, rec, options.t_cut_s, h_star, options.window)
-    infl = tau_influence(rd.time_s, rd.signal_v[rec], options.t_cut_s, fits.tau_s[rec, j0],
-                         fits.amplitude_v[rec, j0], h_star, options.window, noise_v=noise_rec)
+    infl = tau_influence(
+        rd.time_s,
+        rd.signal_v[rec],
+        options.t_cut_s,
+        fits.tau_s[rec, j0],
+        fits.amplitude_v[rec, j0],
+        h_star,
+        options.window,
+        noise_v=noise_rec,
+    )
     da_dtau = np.array([sens.k_gain[pos[int(g)]] * sens.dalpha_dtau[pos[int(g)]] for g in rec])
-    g_dir = da_dtau[:, None] * infl                                   # dA/dy via tau
+    g_dir = da_dtau[:, None] * infl  # dA/dy via tau
     var = np.broadcast_to(np.asarray(noise_rec, float).reshape(rec.size, -1) ** 2, g_dir.shape)
     u_r = np.sqrt(np.diag(refined.cov))
     r_noise_ref = {}
@@ -283,10 +377,13 @@ def _noise_refinement_correlation(inp: _Inputs, dt: _DecayTimes, sens: _HSensiti
     return r_noise_ref
 
 
-def _refinement_shifts(inp: _Inputs, refined, split: _HSplit, grad_a, a_noise, u_dir: float,
-                       r_noise_ref: dict) -> np.ndarray:
-    """Refinement shifts of A, correlated with the line-fit noise as computed:
-    d_ref = rho u_ref z_noise + sqrt(1 - rho^2) (independent draw with sd u_ref)."""
+def _refinement_shifts(
+    inp: _Inputs, refined, split: _HSplit, grad_a, a_noise, u_dir: float, r_noise_ref: dict
+) -> np.ndarray:
+    """Refinement shifts of A, correlated with the line-fit noise as computed.
+
+    D_ref = rho u_ref z_noise + sqrt(1 - rho^2) (independent draw with sd u_ref).
+    """
     ir, refd = split.ir, split.refined
     u_r = np.sqrt(np.diag(refined.cov))
     d_ref = np.zeros(a_noise.size)
@@ -304,15 +401,20 @@ def _refinement_shifts(inp: _Inputs, refined, split: _HSplit, grad_a, a_noise, u
 
 
 def _h_shifted_areas(inp, dt, sens, split, h_draws, h_star, refined, h_parts, a_noise, u_dir):
-    """Step 5: each line-posterior draw of A shifted by one H draw (beat-note part to second order,
-    refinement part correlated with the noise); returns (A draws, noise-refinement correlations)."""
-    d_beat = (h_draws[:, split.io] - split.centre[split.io]) @ split.total_o    # the beat-note part
+    """Step 5.
+
+    Each line-posterior draw of A shifted by one H draw (beat-note part to second order, refinement
+    part correlated with the noise); returns (A draws, noise-refinement correlations).
+    """
+    d_beat = (h_draws[:, split.io] - split.centre[split.io]) @ split.total_o  # the beat-note part
     d_full = h_draws - split.centre
     d_beat = d_beat + 0.5 * np.einsum("ni,ij,nj->n", d_full, sens.hess_a, d_full)
     d_ref = np.zeros(a_noise.size)
     r_noise_ref = {}
     if split.ir:
-        r_noise_ref = _noise_refinement_correlation(inp, dt, sens, h_star, refined, h_parts, split, u_dir)
+        r_noise_ref = _noise_refinement_correlation(
+            inp, dt, sens, h_star, refined, h_parts, split, u_dir
+        )
         d_ref = _refinement_shifts(inp, refined, split, sens.grad_a, a_noise, u_dir, r_noise_ref)
     pair = inp.streams["pair"].integers(0, d_beat.size, size=a_noise.size)
     return a_noise + d_ref + d_beat[pair], r_noise_ref
@@ -328,29 +430,63 @@ def _reference_area(inp: _Inputs, runs: dict):
     if options.posterior == "laplace":
         ref_flat = line_draws(ref_lsq, inp.streams["cmds"])
     else:
-        runs["cmds"] = line_mcmc([cm], options.profile, inp.gd, inp.nu_ref, ref_lsq, inp.streams["cmds"], options,
-                                 inp.chain_file("cmds"), inp.progress, "A_ref | CMDS")
+        runs["cmds"] = line_mcmc(
+            [cm],
+            options.profile,
+            inp.gd,
+            inp.nu_ref,
+            ref_lsq,
+            inp.streams["cmds"],
+            options,
+            inp.chain_file("cmds"),
+            inp.progress,
+            "A_ref | CMDS",
+        )
         ref_flat = runs["cmds"].flat()
     return ref_flat[:, ref_lsq.names.index("line_area")]
 
 
-def _h_components(split: _HSplit, grad_a, hess_a, h_draws, refined, r_noise_ref: dict, noise_name: str):
-    """The H rows of the A budget and their correlations (beat-note posterior, refinement, curvature)."""
+def _h_components(
+    split: _HSplit, grad_a, hess_a, h_draws, refined, r_noise_ref: dict, noise_name: str
+):
+    """The H rows of the A budget and their correlations.
+
+    Rows for the beat-note posterior, the refinement and the curvature.
+    """
     comps, corr = [], {}
     io, ir, refd, others, centre = split.io, split.ir, split.refined, split.others, split.centre
     delta_o = h_draws[:, io] - centre[io]
     for k, n in enumerate(refd):
         u_r = float(np.sqrt(refined.cov[k, k]))
-        comps.append(Component(f"H: {n} (refined on ring-downs)", float(centre[ir[k]]), u_r, float(grad_a[ir[k]]),
-                               H_UNITS[n], note="Type A: sandwich u of the multi-ring-down refinement given the "
-                                                "other H parameters (ring-down noise acting through H)"))
+        comps.append(
+            Component(
+                f"H: {n} (refined on ring-downs)",
+                float(centre[ir[k]]),
+                u_r,
+                float(grad_a[ir[k]]),
+                H_UNITS[n],
+                note="Type A: sandwich u of the multi-ring-down refinement given the other H "
+                "parameters (ring-down noise acting through H)",
+            )
+        )
     osd = delta_o.std(axis=0)
     oc = np.atleast_2d(np.corrcoef(delta_o.T)) if len(io) > 1 else np.ones((1, 1))
     for k, n in enumerate(others):
-        note = "Type A: beat-note posterior" + (f"; sensitivity includes the shift of the refined "
-                                                f"{', '.join(refd)} it causes" if refd else "")
-        comps.append(Component(f"H: {n}", float(centre[io[k]]), float(osd[k]), float(split.total_o[k]), H_UNITS[n],
-                               note=note))
+        note = "Type A: beat-note posterior" + (
+            f"; sensitivity includes the shift of the refined {', '.join(refd)} it causes"
+            if refd
+            else ""
+        )
+        comps.append(
+            Component(
+                f"H: {n}",
+                float(centre[io[k]]),
+                float(osd[k]),
+                float(split.total_o[k]),
+                H_UNITS[n],
+                note=note,
+            )
+        )
     for a in range(len(others)):
         for b in range(a + 1, len(others)):
             corr[(f"H: {others[a]}", f"H: {others[b]}")] = float(oc[a, b])
@@ -360,47 +496,114 @@ def _h_components(split: _HSplit, grad_a, hess_a, h_draws, refined, r_noise_ref:
         rc = refined.cov / np.outer(np.sqrt(np.diag(refined.cov)), np.sqrt(np.diag(refined.cov)))
         for a in range(len(refd)):
             for b in range(a + 1, len(refd)):
-                corr[(f"H: {refd[a]} (refined on ring-downs)", f"H: {refd[b]} (refined on ring-downs)")] = \
-                    float(rc[a, b])
+                corr[
+                    (
+                        f"H: {refd[a]} (refined on ring-downs)",
+                        f"H: {refd[b]} (refined on ring-downs)",
+                    )
+                ] = float(rc[a, b])
     # GUM 5.1.2: the second-order term's own variance, 1/2 tr((Hess Sigma)^2) for Gaussian
     # H draws (its mean shift, 1/2 tr(Hess Sigma), is already in the mean of the draws)
     sig_h = np.atleast_2d(np.cov(h_draws.T))
     hs = hess_a @ sig_h
-    comps.append(Component("H: curvature of A (second order)", None, float(np.sqrt(0.5 * np.trace(hs @ hs))), 1.0,
-                           "Hz/m", note="Type A: 1/2 tr((d2A/dH2 Sigma_H)^2), GUM 5.1.2; the first-order H rows "
-                                        "above miss it"))
+    comps.append(
+        Component(
+            "H: curvature of A (second order)",
+            None,
+            float(np.sqrt(0.5 * np.trace(hs @ hs))),
+            1.0,
+            "Hz/m",
+            note="Type A: 1/2 tr((d2A/dH2 Sigma_H)^2), GUM 5.1.2; the first-order H rows above "
+            "miss it",
+        )
+    )
     return comps, corr
 
 
 def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
-    """Step 7: the GUM budget of A: ring-down noise, the H rows (``h_rows`` = (components,
-    correlations), empty for CRDS), the t_cut choice and the line-shape model."""
-    comps = [Component("ring-down noise (line fit given H)", None, u_dir, 1.0, "Hz/m",
-                       note="Type A: sd of the line posterior given the refined H")]
+    """Step 7.
+
+    The GUM budget of A: ring-down noise, the H rows (``h_rows`` = (components, correlations), empty
+    for CRDS), the t_cut choice and the line-shape model.
+    """
+    comps = [
+        Component(
+            "ring-down noise (line fit given H)",
+            None,
+            u_dir,
+            1.0,
+            "Hz/m",
+            note="Type A: sd of the line posterior given the refined H",
+        )
+    ]
     h_comps, corr = h_rows
     comps += h_comps
     spread = max(dt.area_by_tcut.values()) - min(dt.area_by_tcut.values())
-    comps.append(Component("t_cut choice", None, float(spread / np.sqrt(12)), 1.0, "Hz/m",
-                           note=f"Type B: rectangular over the A(t_cut) range, t_cut = "
-                                f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us"))
-    comps.append(Component(f"line-shape model ({options.profile} vs {options.alt_profile})", None,
-                           float(abs(dt.lsq.line_area - dt.alt.line_area) / np.sqrt(12)), 1.0, "Hz/m",
-                           note="Type B: rectangular over the difference of the two profiles' A"))
-    return Budget(quantity="line area A", value=float(np.mean(a_total)), unit="Hz/m", components=tuple(comps),
-                  correlations=corr)
+    comps.append(
+        Component(
+            "t_cut choice",
+            None,
+            float(spread / np.sqrt(12)),
+            1.0,
+            "Hz/m",
+            note="Type B: rectangular over the A(t_cut) range, t_cut = "
+            f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us",
+        )
+    )
+    comps.append(
+        Component(
+            f"line-shape model ({options.profile} vs {options.alt_profile})",
+            None,
+            float(abs(dt.lsq.line_area - dt.alt.line_area) / np.sqrt(12)),
+            1.0,
+            "Hz/m",
+            note="Type B: rectangular over the difference of the two profiles' A",
+        )
+    )
+    return Budget(
+        quantity="line area A",
+        value=float(np.mean(a_total)),
+        unit="Hz/m",
+        components=tuple(comps),
+        correlations=corr,
+    )
 
 
 def _budget_s(sample, a_hat: float, u_a: float) -> Budget:
     """Step 8: S = A/N with the pressure and temperature rows (bundle uncertainties)."""
     n_dens = float(number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction))
     s_val = float(intensity_to_cm_per_molecule(a_hat, n_dens))
-    return Budget(quantity="line intensity S = A/N", value=s_val, unit="cm/molecule", components=(
-        Component("line area A", a_hat, u_a, s_val / a_hat, "Hz/m", note="combined u(A) from the A budget"),
-        Component("pressure p", sample.pressure_pa, sample.pressure_u_pa, -s_val / sample.pressure_pa, "Pa",
-                  note="bundle /sample@pressure_u_pa"),
-        Component("temperature T", sample.temperature_k, sample.temperature_u_k, s_val / sample.temperature_k, "K",
-                  note="bundle /sample@temperature_u_k"),
-    ))
+    return Budget(
+        quantity="line intensity S = A/N",
+        value=s_val,
+        unit="cm/molecule",
+        components=(
+            Component(
+                "line area A",
+                a_hat,
+                u_a,
+                s_val / a_hat,
+                "Hz/m",
+                note="combined u(A) from the A budget",
+            ),
+            Component(
+                "pressure p",
+                sample.pressure_pa,
+                sample.pressure_u_pa,
+                -s_val / sample.pressure_pa,
+                "Pa",
+                note="bundle /sample@pressure_u_pa",
+            ),
+            Component(
+                "temperature T",
+                sample.temperature_k,
+                sample.temperature_u_k,
+                s_val / sample.temperature_k,
+                "K",
+                note="bundle /sample@temperature_u_k",
+            ),
+        ),
+    )
 
 
 def _budget_ratio(a_hat: float, u_a: float, a_ref) -> Budget | None:
@@ -410,15 +613,35 @@ def _budget_ratio(a_hat: float, u_a: float, a_ref) -> Budget | None:
     a_ref_hat = float(np.mean(a_ref))
     u_ref = float(np.std(a_ref))
     r = a_hat / a_ref_hat
-    return Budget(quantity="A/A_ref", value=r, unit="1", components=(
-        Component("line area A (CRDS)", a_hat, u_a, 1.0 / a_ref_hat, "Hz/m"),
-        Component("reference area A_ref (CMDS)", a_ref_hat, u_ref, -r / a_ref_hat, "Hz/m",
-                  note="Type A: CMDS posterior"),
-    ))
+    return Budget(
+        quantity="A/A_ref",
+        value=r,
+        unit="1",
+        components=(
+            Component("line area A (CRDS)", a_hat, u_a, 1.0 / a_ref_hat, "Hz/m"),
+            Component(
+                "reference area A_ref (CMDS)",
+                a_ref_hat,
+                u_ref,
+                -r / a_ref_hat,
+                "Hz/m",
+                note="Type A: CMDS posterior",
+            ),
+        ),
+    )
 
 
-def _summary(inp: _Inputs, dt: _DecayTimes, budget_a: Budget, budget_s: Budget, budget_ratio, a_total,
-             sens_a: dict, hess_a, h_star) -> dict:
+def _summary(
+    inp: _Inputs,
+    dt: _DecayTimes,
+    budget_a: Budget,
+    budget_s: Budget,
+    budget_ratio,
+    a_total,
+    sens_a: dict,
+    hess_a,
+    h_star,
+) -> dict:
     """The ``budget.json`` payload (cm^-2 and cm/molecule at this edge, SI beside them)."""
     options = inp.options
     a_hat, u_a = budget_a.value, budget_a.combined_u
@@ -426,32 +649,69 @@ def _summary(inp: _Inputs, dt: _DecayTimes, budget_a: Budget, budget_s: Budget, 
     line = load_line()
     s_ref, u_s_ref = line.intensity_cm_per_molecule, line.intensity_u_cm_per_molecule
     summary = {
-        "configuration": inp.config.name, "method": options.method,
+        "configuration": inp.config.name,
+        "method": options.method,
         "window": options.window if options.method == "tf-crds" else None,
-        "t_cut_s": options.t_cut_s, "profile": options.profile,
-        "line_area": {"value": float(line_area_to_cm2(a_hat)), "u": float(line_area_to_cm2(u_a)), "unit": "cm^-2",
-                      "value_si": a_hat, "u_si": u_a, "unit_si": "Hz/m",
-                      "u_statistical": float(line_area_to_cm2(np.std(a_total))),
-                      "u_statistical_note": "posterior sd of A from ring-down noise and H (no Type B rows)"},
-        "intensity": {"value": s_val, "u": budget_s.combined_u, "unit": "cm/molecule",
-                      "reference": s_ref, "reference_u": u_s_ref,
-                      "en": normalized_error(s_val, 2 * budget_s.combined_u, s_ref, 2 * u_s_ref)},
-        "components": [{"name": c.name, "u": float(line_area_to_cm2(c.contribution)), "unit": "cm^-2",
-                        "share": float(budget_a.shares()[c.name])} for c in budget_a.components],
-        "a_by_t_cut": {f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in dt.area_by_tcut.items()},
+        "t_cut_s": options.t_cut_s,
+        "profile": options.profile,
+        "line_area": {
+            "value": float(line_area_to_cm2(a_hat)),
+            "u": float(line_area_to_cm2(u_a)),
+            "unit": "cm^-2",
+            "value_si": a_hat,
+            "u_si": u_a,
+            "unit_si": "Hz/m",
+            "u_statistical": float(line_area_to_cm2(np.std(a_total))),
+            "u_statistical_note": "posterior sd of A from ring-down noise and H (no Type B rows)",
+        },
+        "intensity": {
+            "value": s_val,
+            "u": budget_s.combined_u,
+            "unit": "cm/molecule",
+            "reference": s_ref,
+            "reference_u": u_s_ref,
+            "en": normalized_error(s_val, 2 * budget_s.combined_u, s_ref, 2 * u_s_ref),
+        },
+        "components": [
+            {
+                "name": c.name,
+                "u": float(line_area_to_cm2(c.contribution)),
+                "unit": "cm^-2",
+                "share": float(budget_a.shares()[c.name]),
+            }
+            for c in budget_a.components
+        ],
+        "a_by_t_cut": {
+            f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in dt.area_by_tcut.items()
+        },
         "sensitivities_hz_per_m": {k: float(v) for k, v in sens_a.items()},
-        "hessian_hz_per_m": ({"names": list(BEAT_FREE), "matrix": hess_a.tolist()}
-                             if options.method == "tf-crds" else None),
+        "hessian_hz_per_m": (
+            {"names": list(BEAT_FREE), "matrix": hess_a.tolist()}
+            if options.method == "tf-crds"
+            else None
+        ),
     }
     if h_star is not None:
-        summary["transfer_function"] = {"f_c_hz": h_star.f_c_hz, "a_r": h_star.a_r, "f_r_hz": h_star.f_r_hz,
-                                        "gamma_r": h_star.gamma_r, "n_r": h_star.n_r, "variant": h_star.variant,
-                                        "refined": list(options.refine_free)}
+        summary["transfer_function"] = {
+            "f_c_hz": h_star.f_c_hz,
+            "a_r": h_star.a_r,
+            "f_r_hz": h_star.f_r_hz,
+            "gamma_r": h_star.gamma_r,
+            "n_r": h_star.n_r,
+            "variant": h_star.variant,
+            "refined": list(options.refine_free),
+        }
     if budget_ratio is not None:
         ref = budget_ratio.components[1]
         a_ref_hat, u_ref = ref.value, ref.u
-        summary["reference_area"] = {"value": float(line_area_to_cm2(a_ref_hat)), "u": float(line_area_to_cm2(u_ref)),
-                                     "unit": "cm^-2", "value_si": a_ref_hat, "u_si": u_ref, "unit_si": "Hz/m"}
+        summary["reference_area"] = {
+            "value": float(line_area_to_cm2(a_ref_hat)),
+            "u": float(line_area_to_cm2(u_ref)),
+            "unit": "cm^-2",
+            "value_si": a_ref_hat,
+            "u_si": u_ref,
+            "unit_si": "Hz/m",
+        }
         summary["ratio"] = {"value": budget_ratio.value, "u": budget_ratio.combined_u}
         summary["en"] = normalized_error(a_hat, 2 * u_a, a_ref_hat, 2 * u_ref)
     else:
@@ -460,24 +720,45 @@ def _summary(inp: _Inputs, dt: _DecayTimes, budget_a: Budget, budget_s: Budget, 
 
 
 def _apply_gates(summary: dict, options: BudgetOptions, runs: dict) -> None:
-    """Step 10: the samplers' diagnostics into the summary; a failed run is never shown as a result
-    (its numbers move out of the result keys into ``unconverged_estimates``)."""
+    """Step 10.
+
+    The samplers' diagnostics into the summary; a failed run is never shown as a result (its numbers
+    move out of the result keys into ``unconverged_estimates``).
+    """
     if options.posterior == "laplace":
         # no sampler ran: nothing to diagnose, and the summary says which posterior was used
         passed = True
-        summary["diagnostics"] = {"posterior": "laplace", "rhat_max": None, "ess_min": None, "passed": True,
-                                  "runs": {}}
+        summary["diagnostics"] = {
+            "posterior": "laplace",
+            "rhat_max": None,
+            "ess_min": None,
+            "passed": True,
+            "runs": {},
+        }
     else:
         rhat = max(run.rhat_max for run in runs.values())
         ess = min(run.ess_min for run in runs.values())
         passed = all(run.passed for run in runs.values())
-        summary["diagnostics"] = {"posterior": "mcmc", "rhat_max": float(rhat), "ess_min": float(ess),
-                                  "passed": bool(passed),
-                                  "runs": {k: {"rhat_max": float(v.rhat_max), "ess_min": float(v.ess_min),
-                                               "passed": bool(v.passed), "status": v.status,
-                                               "n_steps": int(v.n_steps)} for k, v in runs.items()}}
+        summary["diagnostics"] = {
+            "posterior": "mcmc",
+            "rhat_max": float(rhat),
+            "ess_min": float(ess),
+            "passed": bool(passed),
+            "runs": {
+                k: {
+                    "rhat_max": float(v.rhat_max),
+                    "ess_min": float(v.ess_min),
+                    "passed": bool(v.passed),
+                    "status": v.status,
+                    "n_steps": int(v.n_steps),
+                }
+                for k, v in runs.items()
+            },
+        }
     if not passed:
-        failed = {k: summary.pop(k) for k in ("line_area", "reference_area", "ratio", "en", "intensity")}
+        failed = {
+            k: summary.pop(k) for k in ("line_area", "reference_area", "ratio", "en", "intensity")
+        }
         summary.update({k: None for k in failed})
         summary["unconverged_estimates"] = failed
         summary["status"] = "failed: convergence gates not met"
@@ -486,8 +767,11 @@ def _apply_gates(summary: dict, options: BudgetOptions, runs: dict) -> None:
 
 
 def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> list:
-    """Step 11: decay-time posteriors at every point and t_cut: noise (the fit's u) and H (one draw
-    moves every tau through S; its covariance is S Sigma_H S^T), first order; seconds."""
+    """Step 11.
+
+    Decay-time posteriors at every point and t_cut: noise (the fit's u) and H (one draw moves every
+    tau through S; its covariance is S Sigma_H S^T), first order; seconds.
+    """
     options, rd, fits = inp.options, inp.config.ringdowns, dt.fits
     tau_table = []
     cov_h = np.cov(h_draws.T) if options.method == "tf-crds" else None
@@ -496,19 +780,42 @@ def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> list:
         rows_j = np.nonzero(ok_j)[0]
         u_h = np.zeros(rows_j.size)
         if cov_h is not None and rows_j.size:
-            s_j = tau_sensitivities(rd.time_s, rd.signal_v, np.full(rows_j.size, tc), fits.tau_s[rows_j, j],
-                                    fits.amplitude_v[rows_j, j], h_star, BEAT_FREE, options.window,
-                                    noise_v=rd.noise_v, rows_of=rows_j)
+            s_j = tau_sensitivities(
+                rd.time_s,
+                rd.signal_v,
+                np.full(rows_j.size, tc),
+                fits.tau_s[rows_j, j],
+                fits.amplitude_v[rows_j, j],
+                h_star,
+                BEAT_FREE,
+                options.window,
+                noise_v=rd.noise_v,
+                rows_of=rows_j,
+            )
             u_h = np.sqrt(np.maximum(np.einsum("ip,pq,iq->i", s_j, cov_h, s_j), 0.0))
         for i, uh in zip(rows_j, u_h):
             un = fits.tau_u_s[i, j]
-            tau_table.append((float(fits.nu_hz[i]), float(tc), float(fits.tau_s[i, j]), float(un), float(uh),
-                              float(np.hypot(un, uh))))
+            tau_table.append(
+                (
+                    float(fits.nu_hz[i]),
+                    float(tc),
+                    float(fits.tau_s[i, j]),
+                    float(un),
+                    float(uh),
+                    float(np.hypot(un, uh)),
+                )
+            )
     return tau_table
 
 
-def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np.random.Generator | None = None,
-               outdir: str | Path | None = None, progress: bool = False) -> BudgetResult:
+def run_budget(
+    bundle,
+    config,
+    options: BudgetOptions = BudgetOptions(),
+    rng: np.random.Generator | None = None,
+    outdir: str | Path | None = None,
+    progress: bool = False,
+) -> BudgetResult:
     """Posteriors, propagation and the GUM budget for one configuration (see module doc).
 
     The steps, in order (each a function of this module): inputs and checks; the H posterior
@@ -520,32 +827,48 @@ def run_budget(bundle, config, options: BudgetOptions = BudgetOptions(), rng: np
     inp = _inputs(bundle, config, options, rng, outdir, progress)
     runs = {}
     h_star = h_draws = refined = h_parts = None
-    if options.method == "tf-crds":                                              # 1. H
+    if options.method == "tf-crds":  # 1. H
         _, refined, h_star, h_draws, h_run, h_parts = h_posterior(
-            config, options, inp.streams["h"], inp.chain_file("h"), progress)
+            config, options, inp.streams["h"], inp.chain_file("h"), progress
+        )
         if h_run is not None:
             runs["h"] = h_run
-    dt = _decay_times(inp, h_star)                                               # 2. decay times
-    line_flat = _line_posterior(inp, dt, runs)                                   # 3. line | H*
+    dt = _decay_times(inp, h_star)  # 2. decay times
+    line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     a_noise = line_flat[:, dt.lsq.names.index("line_area")]
     u_dir = float(np.std(a_noise))
     sens_a, hess_a, h_rows = {}, None, ([], {})
-    if options.method == "tf-crds":                                              # 4-5. H into A
+    if options.method == "tf-crds":  # 4-5. H into A
         sens = _h_sensitivity(inp, dt, h_star, h_draws)
         split = _h_split(h_star, h_parts, sens.grad_a)
-        a_total, r_noise_ref = _h_shifted_areas(inp, dt, sens, split, h_draws, h_star, refined, h_parts,
-                                                a_noise, u_dir)
+        a_total, r_noise_ref = _h_shifted_areas(
+            inp, dt, sens, split, h_draws, h_star, refined, h_parts, a_noise, u_dir
+        )
         sens_a, hess_a = dict(zip(BEAT_FREE, sens.grad_a)), sens.hess_a
-        h_rows = _h_components(split, sens.grad_a, sens.hess_a, h_draws, refined, r_noise_ref,
-                               "ring-down noise (line fit given H)")
+        h_rows = _h_components(
+            split,
+            sens.grad_a,
+            sens.hess_a,
+            h_draws,
+            refined,
+            r_noise_ref,
+            "ring-down noise (line fit given H)",
+        )
     else:
         a_total = a_noise.copy()
-    a_ref = _reference_area(inp, runs)                                           # 6. A_ref
-    budget_a = _budget_a(options, dt, a_total, u_dir, h_rows)                    # 7-9. budgets
+    a_ref = _reference_area(inp, runs)  # 6. A_ref
+    budget_a = _budget_a(options, dt, a_total, u_dir, h_rows)  # 7-9. budgets
     budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u)
     budget_ratio = _budget_ratio(budget_a.value, budget_a.combined_u, a_ref)
     summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, hess_a, h_star)
-    _apply_gates(summary, options, runs)                                         # 10. gates
+    _apply_gates(summary, options, runs)  # 10. gates
     samples = {"a_total": a_total, "a_noise": a_noise, "a_ref": a_ref, "h_draws": h_draws}
-    return BudgetResult(summary=summary, budget_a=budget_a, budget_s=budget_s, budget_ratio=budget_ratio,
-                        samples=samples, runs=runs, tau_table=_tau_table(inp, dt, h_star, h_draws))
+    return BudgetResult(
+        summary=summary,
+        budget_a=budget_a,
+        budget_s=budget_s,
+        budget_ratio=budget_ratio,
+        samples=samples,
+        runs=runs,
+        tau_table=_tau_table(inp, dt, h_star, h_draws),
+    )

@@ -1,4 +1,4 @@
-"""The files of a budget run: budget.json, the GUM tables, decay-time posteriors, netCDF and corners."""
+"""The files of a budget run: budget.json, GUM tables, decay-time posteriors, netCDF, corners."""
 
 from __future__ import annotations
 
@@ -16,6 +16,7 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
     Every file goes through a temporary name and a rename, so none is ever half-written.
     """
     import corner
+
     plt = pyplot()
 
     out = Path(outdir)
@@ -29,12 +30,16 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         summary["seed"] = seed
     atomic_write_text(out / "budget.json", json.dumps(summary, indent=2, default=float) + "\n")
     written.append(out / "budget.json")
-    tables = [result.budget_a, result.budget_s] + ([result.budget_ratio] if result.budget_ratio is not None else [])
+    tables = [result.budget_a, result.budget_s] + (
+        [result.budget_ratio] if result.budget_ratio is not None else []
+    )
     md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
     atomic_write_text(out / "budget.md", md + "\n")
     atomic_write_text(out / "budget.csv", result.budget_a.to_csv())
     lines = ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"] + [
-        f"{nu:.9f},{tc:.6e},{tau:.10e},{un:.4e},{uh:.4e},{u:.4e}" for nu, tc, tau, un, uh, u in result.tau_table]
+        f"{nu:.9f},{tc:.6e},{tau:.10e},{un:.4e},{uh:.4e},{u:.4e}"
+        for nu, tc, tau, un, uh, u in result.tau_table
+    ]
     atomic_write_text(out / "tau_posterior.csv", "\n".join(lines) + "\n")
     written += [out / "budget.md", out / "budget.csv", out / "tau_posterior.csv"]
     for key, run in result.runs.items():
@@ -47,4 +52,3 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         plt.close(fig)
         written.append(out / f"corner_{key}.png")
     return written
-

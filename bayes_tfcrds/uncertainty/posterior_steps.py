@@ -1,7 +1,10 @@
-"""The posteriors the budget samples: H (beat note, then the ring-down refinement update), the
-line parameters given a spectrum (CRDS or CMDS), and their Laplace (least-squares) stand-ins.
+"""The posteriors the budget samples.
 
-Each returns draws in SI units and, for MCMC, the :class:`~bayes_tfcrds.inference.result.SamplingResult`
+H (beat note, then the ring-down refinement update), the line parameters given a spectrum (CRDS or
+CMDS), and their Laplace (least-squares) stand-ins.
+
+Each returns draws in SI units and, for MCMC, the
+:class:`~bayes_tfcrds.inference.result.SamplingResult`
 whose gates decide whether the budget may be shown.
 """
 
@@ -17,23 +20,34 @@ from bayes_tfcrds.uncertainty.propagate import model_of
 
 
 def sampler_moves():
-    """Differential-evolution proposals (with snooker updates): on these correlated, bounded
-    posteriors they cut the integrated autocorrelation time about threefold against emcee's
-    default stretch move (measured: tau_int 100 -> 35 steps on the CMDS line posterior)."""
+    """Differential-evolution proposals (with snooker updates).
+
+    On these correlated, bounded posteriors they cut the integrated autocorrelation time about
+    threefold against emcee's default stretch move (measured: tau_int 100 -> 35 steps on the CMDS
+    line posterior).
+    """
     import emcee
+
     return [(emcee.moves.DEMove(), 0.8), (emcee.moves.DESnookerMove(), 0.2)]
+
 
 def n_walkers(ndim: int) -> int:
     # the gates count chain length in autocorrelation times (steps), not draws, so a few walkers
     # per dimension suffice and each step is cheaper; ESS stays far above the 400 gate
     return max(3 * ndim, 16)
 
+
 def h_posterior(config, options, rng, backend, progress):
     """Beat-note MCMC, then the refinement update of ``refine_free``; returns draws (n, 4)."""
     beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
     tfd = config.transfer_function
-    post = BeatNotePosterior(f_hz=np.asarray(tfd.f_hz), h_mag=np.asarray(tfd.h_mag),
-                             h_mag_u=np.asarray(tfd.h_mag_u), free=BEAT_FREE, fixed=beat.params)
+    post = BeatNotePosterior(
+        f_hz=np.asarray(tfd.f_hz),
+        h_mag=np.asarray(tfd.h_mag),
+        h_mag_u=np.asarray(tfd.h_mag_u),
+        free=BEAT_FREE,
+        fixed=beat.params,
+    )
     x0 = post.to_sample(beat.params, beat.scale)
     sd0 = np.sqrt(np.diag(beat.cov))
     # initial spread: the least-squares covariance, in sample space (log params: relative sd)
@@ -45,13 +59,25 @@ def h_posterior(config, options, rng, backend, progress):
 
     if options.posterior == "laplace":
         run = None
-        draws = rng.multivariate_normal(nat, 0.5 * (beat.cov + beat.cov.T), size=options.n_h_draws,
-                                        method="eigh")[:, :len(BEAT_FREE)]
+        draws = rng.multivariate_normal(
+            nat, 0.5 * (beat.cov + beat.cov.T), size=options.n_h_draws, method="eigh"
+        )[:, : len(BEAT_FREE)]
     else:
-        run = run_ensembles(post, p0, post.sample_names, rng, n_ensembles=options.n_ensembles,
-                            n_walkers=n_walkers(x0.size), n_steps=options.n_steps, max_steps=options.max_steps,
-                            vectorize=True, backend_path=backend, progress=progress, label="H | beat note",
-                            moves=sampler_moves())
+        run = run_ensembles(
+            post,
+            p0,
+            post.sample_names,
+            rng,
+            n_ensembles=options.n_ensembles,
+            n_walkers=n_walkers(x0.size),
+            n_steps=options.n_steps,
+            max_steps=options.max_steps,
+            vectorize=True,
+            backend_path=backend,
+            progress=progress,
+            label="H | beat note",
+            moves=sampler_moves(),
+        )
         flat = run.flat()
         pick = rng.choice(flat.shape[0], size=min(options.n_h_draws, flat.shape[0]), replace=False)
         nat_draws = post.to_params(flat[pick])
@@ -63,9 +89,17 @@ def h_posterior(config, options, rng, backend, progress):
         t_cuts = np.asarray(options.t_cuts_s, float)
         rows = np.repeat(np.arange(idx.size), t_cuts.size)
         noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
-        refined = refine_transfer_function(rd.time_s, rd.signal_v[idx], np.tile(t_cuts, idx.size), beat.params,
-                                           free=options.refine_free, window=options.window, noise_v=noise,
-                                           rows_of=rows, sens_names=BEAT_FREE)
+        refined = refine_transfer_function(
+            rd.time_s,
+            rd.signal_v[idx],
+            np.tile(t_cuts, idx.size),
+            beat.params,
+            free=options.refine_free,
+            window=options.window,
+            noise_v=noise,
+            rows_of=rows,
+            sens_names=BEAT_FREE,
+        )
         others = tuple(n for n in BEAT_FREE if n not in options.refine_free)
         gain, _ = refined.conditional({n: None for n in others})
         io = [BEAT_FREE.index(n) for n in others]
@@ -75,39 +109,65 @@ def h_posterior(config, options, rng, backend, progress):
         noise_r = rng.multivariate_normal(np.zeros(len(ir)), refined.cov, size=draws.shape[0])
         draws[:, ir] = centre[ir] + delta_o @ gain.T + noise_r
         h_star = refined.params
-        parts = {"others": others, "refined": tuple(options.refine_free), "gain": gain, "records": idx}
+        parts = {
+            "others": others,
+            "refined": tuple(options.refine_free),
+            "gain": gain,
+            "records": idx,
+        }
     else:
         h_star = beat.params
-        parts = {"others": BEAT_FREE, "refined": (), "gain": np.zeros((0, len(BEAT_FREE))), "records": None}
+        parts = {
+            "others": BEAT_FREE,
+            "refined": (),
+            "gain": np.zeros((0, len(BEAT_FREE))),
+            "records": None,
+        }
     return beat, refined, h_star, draws, run, parts
+
 
 def fit_transients_noise(rd, records, t_cut_s, tf, window):
     """Per-record noise (V) estimated from TF-CRDS residuals, for bundles without noise_v."""
     from bayes_tfcrds.fit.ringdown import fit_transients
-    f = fit_transients(rd.time_s, rd.signal_v[records], np.full(len(records), t_cut_s), "tf-crds", tf, window)
+
+    f = fit_transients(
+        rd.time_s, rd.signal_v[records], np.full(len(records), t_cut_s), "tf-crds", tf, window
+    )
     return f.noise_v
+
 
 def line_draws(lsq, rng, n=4000):
     """Laplace posterior: draws of the line parameters from the least-squares solution."""
-    cov = 0.5 * (lsq.cov + lsq.cov.T)       # parameters at a bound have zero rows: singular, still PSD
+    cov = 0.5 * (lsq.cov + lsq.cov.T)  # parameters at a bound have zero rows: singular, still PSD
     return rng.multivariate_normal(lsq.values, cov, size=n, method="eigh")
 
+
 def line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress, label):
-    """emcee on the line parameters given ``spectra``, started inside the physical prior around the
-    least-squares solution ``lsq``."""
+    """emcee on the line parameters given ``spectra``.
+
+    Walkers start inside the physical prior around the least-squares solution ``lsq``.
+    """
     model = model_of(lsq)
     post = LinePosterior(model=model, spectra=tuple(spectra), names=lsq.names)
     sd = np.sqrt(np.diag(lsq.cov))
-    sd = np.where(sd > 0, sd, np.abs(lsq.values) * 1e-3 + 1e-3 * lsq.doppler_hwhm_hz * (np.array(lsq.names) != "line_area"))
+    sd = np.where(
+        sd > 0,
+        sd,
+        np.abs(lsq.values) * 1e-3
+        + 1e-3 * lsq.doppler_hwhm_hz * (np.array(lsq.names) != "line_area"),
+    )
     x0 = lsq.values.copy()
-    for i, n in enumerate(lsq.names):           # start strictly inside the prior
+    for i, n in enumerate(lsq.names):  # start strictly inside the prior
         if n in ("gamma2_hz", "nu_vc_hz") and x0[i] <= sd[i]:
             x0[i] = sd[i]
     # the prior also caps Gamma2 at 2/3 Gamma0 (no negative width in any speed class); the
     # unbounded least-squares estimate and its sd can lie beyond it
     i2 = lsq.names.index("gamma2_hz") if "gamma2_hz" in lsq.names else None
-    cap = (2.0 / 3.0) * abs(x0[lsq.names.index("gamma0_hz")]) if i2 is not None and "gamma0_hz" in lsq.names \
+    cap = (
+        (2.0 / 3.0) * abs(x0[lsq.names.index("gamma0_hz")])
+        if i2 is not None and "gamma0_hz" in lsq.names
         else np.inf
+    )
     if i2 is not None and x0[i2] >= cap:
         x0[i2] = 0.5 * cap
 
@@ -116,13 +176,24 @@ def line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress
         for i, name in enumerate(lsq.names):
             if name in ("gamma2_hz", "nu_vc_hz", "line_area", "gamma0_hz"):
                 x[:, i] = np.abs(x[:, i])
-        if np.isfinite(cap):                   # each walker's own Gamma0 sets its cap
+        if np.isfinite(cap):  # each walker's own Gamma0 sets its cap
             cap_w = (2.0 / 3.0) * x[:, lsq.names.index("gamma0_hz")]
             over = x[:, i2] >= cap_w
             x[over, i2] = cap_w[over] * r.uniform(0.1, 0.9, int(over.sum()))
         return x
 
-    return run_ensembles(post, p0, lsq.names, rng, n_ensembles=options.n_ensembles,
-                         n_walkers=n_walkers(x0.size), n_steps=options.n_steps, max_steps=options.max_steps,
-                         vectorize=True, backend_path=backend, progress=progress, label=label, moves=sampler_moves())
-
+    return run_ensembles(
+        post,
+        p0,
+        lsq.names,
+        rng,
+        n_ensembles=options.n_ensembles,
+        n_walkers=n_walkers(x0.size),
+        n_steps=options.n_steps,
+        max_steps=options.max_steps,
+        vectorize=True,
+        backend_path=backend,
+        progress=progress,
+        label=label,
+        moves=sampler_moves(),
+    )

@@ -12,18 +12,35 @@ line parameters follow the CRDS spectrum through the least-squares gain K = (J^T
 of the line fit. Both maps are first order; :func:`bayes_tfcrds.uncertainty.check_linearity`
 compares them with full refits at draws from the posterior tails.
 """
+
 from __future__ import annotations
 
 import numpy as np
 
 from bayes_tfcrds.core.linalg import central_jacobian
-from bayes_tfcrds.physics.forward import filtered_response, first_index_at, grid_transfer_function, model_grids
 from bayes_tfcrds.fit.ringdown import noise_rows
+from bayes_tfcrds.physics.forward import (
+    filtered_response,
+    first_index_at,
+    grid_transfer_function,
+    model_grids,
+)
 from bayes_tfcrds.physics.transfer_function import TFParams
 
 
-def tau_sensitivities(time_s, signal_v, t_cut_s, tau_s, amplitude_v, tf: TFParams, names, window="extinction",
-                      noise_v=None, rows_of=None, chunk: int = 32) -> np.ndarray:
+def tau_sensitivities(
+    time_s,
+    signal_v,
+    t_cut_s,
+    tau_s,
+    amplitude_v,
+    tf: TFParams,
+    names,
+    window="extinction",
+    noise_v=None,
+    rows_of=None,
+    chunk: int = 32,
+) -> np.ndarray:
     """d tau_hat / d theta (s per unit of each H parameter in ``names``), shape (n_rows, p).
 
     ``time_s`` (k,) s; ``signal_v`` (m, k) V; per row: ``t_cut_s`` (s), fitted ``tau_s`` (s) and
@@ -46,20 +63,30 @@ def tau_sensitivities(time_s, signal_v, t_cut_s, tau_s, amplitude_v, tf: TFParam
         first = first_index_at(t[0], dt, uniq[gi])
         sel_all = np.nonzero(group == gi)[0]
         for start in range(0, sel_all.size, chunk):
-            sel = sel_all[start:start + chunk]
-            g, dg, dgt = filtered_response(tau[sel], grids[gi], h, derivative=True, dh_k=dh, fill=0.0)
+            sel = sel_all[start : start + chunk]
+            g, dg, dgt = filtered_response(
+                tau[sel], grids[gi], h, derivative=True, dh_k=dh, fill=0.0
+            )
             w = np.zeros((sel.size, k))
             w[:, first:] = 1.0 if noise is None else 1.0 / noise[sel, first:] ** 2
-            cols = np.stack([g, np.ones_like(g), amp[sel, None] * dg], axis=1)        # (c, 3, k)
-            jth = amp[sel, None, None] * dgt                                           # (c, p, k)
+            cols = np.stack([g, np.ones_like(g), amp[sel, None] * dg], axis=1)  # (c, 3, k)
+            jth = amp[sel, None, None] * dgt  # (c, p, k)
             ctc = np.einsum("nak,nbk,nk->nab", cols, cols, w)
             ctj = np.einsum("nak,npk,nk->nap", cols, jth, w)
             out[sel] = -np.linalg.solve(ctc, ctj)[:, 2, :]
     return out
 
 
-def tau_influence(time_s, signal_v, t_cut_s, tau_s, amplitude_v, tf: TFParams | None, window="extinction",
-                  noise_v=None) -> np.ndarray:
+def tau_influence(
+    time_s,
+    signal_v,
+    t_cut_s,
+    tau_s,
+    amplitude_v,
+    tf: TFParams | None,
+    window="extinction",
+    noise_v=None,
+) -> np.ndarray:
     """d tau_hat / d y_k for each record's samples (s/V), shape (n, k): the delta-method influence.
 
     For TF-CRDS pass ``tf``; with ``tf`` None the plain exponential (CRDS) model is used.
@@ -78,16 +105,22 @@ def tau_influence(time_s, signal_v, t_cut_s, tau_s, amplitude_v, tf: TFParams | 
         dg = g * x / tau[:, None]
     else:
         grid = model_grids(float(t[0]), dt, k, [t_cut_s], tf, window)[0]
-        g, dg = filtered_response(tau, grid, grid_transfer_function(grid, tf), derivative=True, fill=0.0)
+        g, dg = filtered_response(
+            tau, grid, grid_transfer_function(grid, tf), derivative=True, fill=0.0
+        )
         g, dg = g * mask, dg * mask
-    w = mask if noise_v is None else mask / np.broadcast_to(np.asarray(noise_v, float).reshape(n, -1), (n, k)) ** 2
+    w = (
+        mask
+        if noise_v is None
+        else mask / np.broadcast_to(np.asarray(noise_v, float).reshape(n, -1), (n, k)) ** 2
+    )
     cols = np.stack([g, mask, amp[:, None] * dg], axis=1)
     ctc = np.einsum("nak,nbk,nk->nab", cols, cols, w)
     return np.einsum("nb,nbk,nk->nk", np.linalg.inv(ctc)[:, 2, :], cols, w)
 
 
 def line_gain(line_fit) -> np.ndarray:
-    """K = d theta_line / d y for a :class:`bayes_tfcrds.spectrum.LineFit`, shape (n_par, n_y).
+    """K = d theta_line / d y for a :class:`bayes_tfcrds.fit.line.LineFit`, shape (n_par, n_y).
 
     y are the fitted spectrum values concatenated over its spectra, in their own units; the
     gain is that of weighted least squares at the solution (parameters held at a bound get
@@ -97,8 +130,12 @@ def line_gain(line_fit) -> np.ndarray:
     theta = np.asarray(line_fit.values, float)
     u = np.concatenate([s.u for s in spectra])
     model = model_of(line_fit)
-    scale = np.array([line_fit.doppler_hwhm_hz if n == "position_offset_hz" else max(abs(v), 1e-30)
-                      for n, v in zip(line_fit.names, theta)])
+    scale = np.array(
+        [
+            line_fit.doppler_hwhm_hz if n == "position_offset_hz" else max(abs(v), 1e-30)
+            for n, v in zip(line_fit.names, theta)
+        ]
+    )
     steps = 1e-6 * np.maximum(np.abs(theta), 1e-3 * scale)
     jac = central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), theta, steps)
     jw = jac / u[:, None] ** 2
@@ -108,8 +145,15 @@ def line_gain(line_fit) -> np.ndarray:
 
 def model_of(line_fit):
     from bayes_tfcrds.fit.line import LineModel
+
     shape_free = tuple(n for n in line_fit.names[2:] if not n.startswith(("baseline", "slope")))
     slopes = tuple(f"slope{i}" in line_fit.names for i in range(len(line_fit.spectra)))
-    return LineModel(profile=line_fit.profile, shape_free=shape_free, kinds=tuple(s.kind for s in line_fit.spectra),
-                     slopes=slopes, nu_ref_hz=line_fit.nu_ref_hz, doppler_hwhm_hz=line_fit.doppler_hwhm_hz,
-                     fixed=line_fit.fixed)
+    return LineModel(
+        profile=line_fit.profile,
+        shape_free=shape_free,
+        kinds=tuple(s.kind for s in line_fit.spectra),
+        slopes=slopes,
+        nu_ref_hz=line_fit.nu_ref_hz,
+        doppler_hwhm_hz=line_fit.doppler_hwhm_hz,
+        fixed=line_fit.fixed,
+    )

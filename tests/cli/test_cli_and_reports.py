@@ -1,4 +1,5 @@
 """The command line end to end, study files, and the reports as a browser renders them."""
+
 import csv
 import json
 import shutil
@@ -17,8 +18,26 @@ ROOT = Path(__file__).resolve().parents[2]
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     path = tmp_path_factory.mktemp("cli") / "c.h5"
-    assert main(["simulate", "--preset", "letter-D2", "--preset", "letter-D4", "--seed", "4", "--points", "21",
-                 "--samples", "4096", "-o", str(path)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--preset",
+                "letter-D2",
+                "--preset",
+                "letter-D4",
+                "--seed",
+                "4",
+                "--points",
+                "21",
+                "--samples",
+                "4096",
+                "-o",
+                str(path),
+            ]
+        )
+        == 0
+    )
     return path
 
 
@@ -30,11 +49,27 @@ def test_simulate_then_validate(campaign, capsys):
 
 def test_fit_writes_one_row_per_point_and_t_cut(campaign, tmp_path):
     out = tmp_path / "fits.csv"
-    assert main(["fit", str(campaign), "--config", "D4", "--method", "tf-crds", "--tcut", "2e-6,4e-6,8e-6",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                str(campaign),
+                "--config",
+                "D4",
+                "--method",
+                "tf-crds",
+                "--tcut",
+                "2e-6,4e-6,8e-6",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(out.open()))
     from bayes_tfcrds.bundle.reader import load_bundle
-    m = load_bundle(campaign).configs["D4"].ringdowns.n_points      # ~21 unique cavity modes
+
+    m = load_bundle(campaign).configs["D4"].ringdowns.n_points  # ~21 unique cavity modes
     assert len(rows) == m * 3 and m >= 15
     assert {"nu_hz", "t_cut_s", "tau_s", "tau_u_s", "chi2_red"} <= set(rows[0])
     tau = np.array([float(r["tau_s"]) for r in rows])
@@ -44,22 +79,57 @@ def test_fit_writes_one_row_per_point_and_t_cut(campaign, tmp_path):
 
 def test_linefit_json_and_crds_bias(campaign, tmp_path):
     out_tf, out_c = tmp_path / "tf.json", tmp_path / "crds.json"
-    assert main(["linefit", str(campaign), "--config", "D4", "--method", "tf-crds", "--tcut", "4e-6",
-                 "--profile", "qsdhcp", "-o", str(out_tf)]) == 0
-    assert main(["linefit", str(campaign), "--config", "D4", "--method", "crds", "--tcut", "4e-6",
-                 "-o", str(out_c)]) == 0
+    assert (
+        main(
+            [
+                "linefit",
+                str(campaign),
+                "--config",
+                "D4",
+                "--method",
+                "tf-crds",
+                "--tcut",
+                "4e-6",
+                "--profile",
+                "qsdhcp",
+                "-o",
+                str(out_tf),
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "linefit",
+                str(campaign),
+                "--config",
+                "D4",
+                "--method",
+                "crds",
+                "--tcut",
+                "4e-6",
+                "-o",
+                str(out_c),
+            ]
+        )
+        == 0
+    )
     tf, cr = json.loads(out_tf.read_text()), json.loads(out_c.read_text())
     for key in ("line_area", "reference_area"):
         assert set(tf[key]) >= {"value", "u", "unit"} and tf[key]["unit"] == "cm^-2"
     assert set(tf["ratio"]) >= {"value", "u"}
     assert abs(tf["ratio"]["value"] - 1) < 4 * tf["ratio"]["u"]
-    assert cr["ratio"]["value"] < 0.95                     # D4: the letter's -8 %
+    assert cr["ratio"]["value"] < 0.95  # D4: the letter's -8 %
 
 
 def test_bad_invocations_give_clear_errors(campaign, tmp_path, capsys):
     with pytest.raises(SystemExit, match="no configuration 'D9'"):
         main(["fit", str(campaign), "--config", "D9", "-o", str(tmp_path / "x.csv")])
-    assert main(["fit", str(campaign), "--config", "D2", "--tcut", "1", "-o", str(tmp_path / "x.csv")]) == 1
+    assert (
+        main(["fit", str(campaign), "--config", "D2", "--tcut", "1", "-o", str(tmp_path / "x.csv")])
+        == 1
+    )
     assert "beyond the record" in capsys.readouterr().err
     assert main(["simulate", "--effect", "nonsense", "-o", str(tmp_path / "y.h5")]) == 2
     assert not (tmp_path / "x.csv").exists()
@@ -80,7 +150,7 @@ def test_study_files_are_validated_with_the_key_named(tmp_path):
     with pytest.raises(StudyError, match="study.kind"):
         load_study(bad)
     for shipped in (ROOT / "studies").glob("*.toml"):
-        load_study(shipped)                                # every shipped study is valid
+        load_study(shipped)  # every shipped study is valid
 
 
 def _chromium():
@@ -89,20 +159,42 @@ def _chromium():
 
 def _rendered_dom(exe, html_path, profile_dir) -> str:
     """The page's DOM after headless Chromium has loaded it (no network, a fresh profile)."""
-    return subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                           "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                           f"--user-data-dir={profile_dir}", "--virtual-time-budget=5000", "--dump-dom",
-                           Path(html_path).as_uri()], capture_output=True, text=True, timeout=120).stdout
+    return subprocess.run(
+        [
+            exe,
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-quic",
+            "--no-first-run",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            f"--user-data-dir={profile_dir}",
+            "--virtual-time-budget=5000",
+            "--dump-dom",
+            Path(html_path).as_uri(),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    ).stdout
 
 
 def test_small_study_report_renders_in_a_browser(tmp_path):
     study = tmp_path / "s.toml"
-    study.write_text('[study]\nname = "s"\nkind = "tcut"\nseed = 2\ntitle = "<script>alert(1)</script> t"\n'
-                     '[campaign]\npresets = ["letter-D4"]\npoints = 21\nsamples = 4096\naverages = 10\n'
-                     '[analysis]\nt_cuts_us = [4, 8]\n')
-    assert main(["study", str(study), "-o", str(tmp_path / "rep"), "--quiet", "--workers", "1"]) == 0
+    study.write_text(
+        '[study]\nname = "s"\nkind = "tcut"\nseed = 2\ntitle = "<script>alert(1)</script> t"\n'
+        '[campaign]\npresets = ["letter-D4"]\npoints = 21\nsamples = 4096\naverages = 10\n'
+        "[analysis]\nt_cuts_us = [4, 8]\n"
+    )
+    assert (
+        main(["study", str(study), "-o", str(tmp_path / "rep"), "--quiet", "--workers", "1"]) == 0
+    )
     html = (tmp_path / "rep" / "s.html").read_text()
-    assert "<script>alert(1)</script>" not in html and "&lt;script&gt;alert(1)&lt;/script&gt;" in html
+    assert (
+        "<script>alert(1)</script>" not in html and "&lt;script&gt;alert(1)&lt;/script&gt;" in html
+    )
     assert (tmp_path / "rep" / "s.pdf").stat().st_size > 1000
     assert "sha256 campaign.h5" in html and "git_commit" in html
     exe = _chromium()
@@ -124,11 +216,13 @@ def test_committed_reports_render_in_a_browser(tmp_path):
 
 def test_cmds_that_does_not_overlap_the_ring_downs_is_refused(campaign):
     from dataclasses import replace
+
     from bayes_tfcrds.bundle.reader import load_bundle
     from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line
+
     b = load_bundle(campaign)
     cfg = b.configs["D2"]
-    far = replace(cfg.cmds, nu_hz=cfg.cmds.nu_hz + 1e12)          # 1 THz away from the line
+    far = replace(cfg.cmds, nu_hz=cfg.cmds.nu_hz + 1e12)  # 1 THz away from the line
     with pytest.raises(LineFitError, match=r"/configs/D2/cmds/nu_hz .* does not overlap"):
         analyse_line(b, replace(cfg, cmds=far), method="crds")
 
@@ -136,12 +230,44 @@ def test_cmds_that_does_not_overlap_the_ring_downs_is_refused(campaign):
 def test_records_too_short_for_the_decay_are_flagged(tmp_path):
     out = tmp_path / "short.h5"
     # 1024 samples at 20 ns: 20 us of record, shorter than twice the 32 us empty-cavity decay
-    assert main(["simulate", "--preset", "letter-D2", "--points", "15", "--samples", "1024", "--seed", "1",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--preset",
+                "letter-D2",
+                "--points",
+                "15",
+                "--samples",
+                "1024",
+                "--seed",
+                "1",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     csv_out = tmp_path / "f.csv"
-    assert main(["fit", str(out), "--config", "D2", "--method", "crds", "--tcut", "2e-6", "-o", str(csv_out)]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                str(out),
+                "--config",
+                "D2",
+                "--method",
+                "crds",
+                "--tcut",
+                "2e-6",
+                "-o",
+                str(csv_out),
+            ]
+        )
+        == 0
+    )
     rows = list(csv.DictReader(csv_out.open()))
     status = {r["status"] for r in rows}
-    assert "record-short" in status                                 # the baseline decays
+    assert "record-short" in status  # the baseline decays
     long_tau = max(rows, key=lambda r: float(r["tau_s"]))
     assert long_tau["status"] == "record-short"

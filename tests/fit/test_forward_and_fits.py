@@ -1,16 +1,18 @@
 """Forward model (Eqs. 3-4) and ring-down fits against independent truths."""
+
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from scipy import fft as sfft
 
+from bayes_tfcrds.fit.refine import refine_transfer_function
+from bayes_tfcrds.fit.ringdown import fit_transients
 from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.physics.forward import extinction_grid, input_spectrum, ringdown_model
-from bayes_tfcrds.fit.ringdown import fit_transients
-from bayes_tfcrds.fit.refine import refine_transfer_function
 from bayes_tfcrds.physics.transfer_function import TFParams
-from dataclasses import replace
 
-DT, K, T0 = 20e-9, 8192, -2.01e-6          # t0 off the sample grid on purpose
+DT, K, T0 = 20e-9, 8192, -2.01e-6  # t0 off the sample grid on purpose
 T = T0 + DT * np.arange(K)
 D4_LIKE = TFParams(f_c_hz=2.0e4, a_r=17.0, f_r_hz=6.0e6, gamma_r=0.7, n_r=2.0, variant="causal")
 D2_LIKE = TFParams(f_c_hz=6.0e4, a_r=15.0, f_r_hz=6.0e6, gamma_r=0.7, n_r=2.0, variant="causal")
@@ -41,7 +43,9 @@ def test_unit_transfer_function_gives_the_pure_exponential(window):
         sel = ~np.isnan(y)
         t_a = T[sel][0]
         assert t_a >= 4e-6 and t_a - 4e-6 < DT
-        np.testing.assert_allclose(y[sel], b + amp * np.exp(-(T[sel] - t_a) / tau), rtol=0, atol=1e-12)
+        np.testing.assert_allclose(
+            y[sel], b + amp * np.exp(-(T[sel] - t_a) / tau), rtol=0, atol=1e-12
+        )
 
 
 def test_single_pole_gives_the_two_exponential_response():
@@ -50,15 +54,21 @@ def test_single_pole_gives_the_two_exponential_response():
     tau = np.array([4e-6, 32e-6])
     y = ringdown_model(T, tau, 1.0, 0.0, p)
     tc = 1.0 / (2 * np.pi * f_c)
-    exact = np.where(T < 0, 1.0, (tau[:, None] * np.exp(-T / tau[:, None]) - tc * np.exp(-T / tc))
-                     / (tau[:, None] - tc))
+    exact = np.where(
+        T < 0,
+        1.0,
+        (tau[:, None] * np.exp(-T / tau[:, None]) - tc * np.exp(-T / tc)) / (tau[:, None] - tc),
+    )
     late = T >= 0.5e-6
     # away from the kink the DFT model is exact up to the wrap-around tolerance (1e-7)
     assert np.max(np.abs(y[:, late] - exact[:, late])) < 1e-7
     # at the kink, sampling the continuous convolution errs by O((dt/tc)^2) of the fast term
     assert np.max(np.abs(y - exact)) < 2e-4
     # and the model is not trivially the exponential: the fast term is resolved
-    assert np.max(np.abs(exact - np.where(T < 0, 1.0, np.exp(-np.clip(T, 0, None) / tau[:, None])))) > 1e-2
+    assert (
+        np.max(np.abs(exact - np.where(T < 0, 1.0, np.exp(-np.clip(T, 0, None) / tau[:, None]))))
+        > 1e-2
+    )
 
 
 def test_extinction_window_matches_exact_chain_and_letter_window_does_not():
@@ -95,7 +105,9 @@ def test_tau_pulls_are_standard_normal(method):
     chain = chain_from_tf(tf) if method == "tf-crds" else chain_from_tf(TFParams(f_c_hz=1e12))
     tau, sigma, n = 6e-6, 1.2e-4, 1000
     sig = _noisy_batch(chain, tau, n, sigma, rng)
-    fits = fit_transients(T, sig, np.full(n, 4e-6), method, tf, "extinction", noise_v=np.full(n, sigma))
+    fits = fit_transients(
+        T, sig, np.full(n, 4e-6), method, tf, "extinction", noise_v=np.full(n, sigma)
+    )
     pulls = (fits.tau_s - tau) / fits.tau_u_s
     assert fits.converged.all()
     # 1000 draws: standard errors 0.032 (mean) and 0.022 (sd); +/-0.1 is beyond 3 sigma
@@ -144,12 +156,13 @@ def test_refinement_recovers_perturbed_cutoff():
     tcs = [2e-6, 4e-6, 8e-6]
     rows = np.repeat(np.arange(4), 3)
     start = replace(D2_LIKE, f_c_hz=1.15 * D2_LIKE.f_c_hz)
-    ref = refine_transfer_function(T, sig, np.tile(tcs, 4), start, free=("f_c_hz",),
-                                   noise_v=np.full(4, sigma), rows_of=rows)
+    ref = refine_transfer_function(
+        T, sig, np.tile(tcs, 4), start, free=("f_c_hz",), noise_v=np.full(4, sigma), rows_of=rows
+    )
     u = ref.stderr["f_c_hz"]
     assert ref.converged
     assert abs(ref.params.f_c_hz - D2_LIKE.f_c_hz) < 3 * u
-    assert u < 0.01 * D2_LIKE.f_c_hz          # the ring-downs do constrain the slow tail
+    assert u < 0.01 * D2_LIKE.f_c_hz  # the ring-downs do constrain the slow tail
     # shared noise across truncations: the honest covariance exceeds the naive one
     assert ref.cov[0, 0] > 1.5 * ref.cov_naive[0, 0]
     assert abs(ref.chi2_red - 1) < 0.02

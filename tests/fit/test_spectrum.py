@@ -1,18 +1,19 @@
 """Spectrum fits: the line area is recovered with honest uncertainties; model errors show."""
+
 import numpy as np
 import pytest
 
 from bayes_tfcrds.core.constants import C, wavenumber_cm_to_hz
-from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
 from bayes_tfcrds.core.gum import ratio
-from bayes_tfcrds.fit.spectrum import SpectrumData, crds_spectrum
 from bayes_tfcrds.fit.line import fit_line
+from bayes_tfcrds.fit.spectrum import SpectrumData, crds_spectrum
+from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
 
 NU0 = float(wavenumber_cm_to_hz(6410.878))
 GD = float(doppler_hwhm_hz(NU0, 296.0, 27.9949))
-G0 = 0.047 * C * 100 * 5 / 760                    # self-broadened HWHM at 5 Torr, Hz
+G0 = 0.047 * C * 100 * 5 / 760  # self-broadened HWHM at 5 Torr, Hz
 SHAPE = dict(gamma0_hz=G0, gamma2_hz=0.12 * G0, nu_vc_hz=0.4 * G0)
-AREA = 3.93e5                                      # Hz/m (1.31e-7 cm^-2)
+AREA = 3.93e5  # Hz/m (1.31e-7 cm^-2)
 ALOSS = 1.0 / (C * 32.1e-6)
 NU = NU0 + np.arange(-49, 50) * 203e6
 
@@ -58,7 +59,7 @@ def test_voigt_on_qsdhcp_data_shows_the_w_residual_and_a_biased_area():
     assert centre < 0 < shoulder or centre > 0 > shoulder
     assert v.chi2_red > 100 and q.chi2_red < 1e-6
     bias = v.line_area / AREA - 1
-    assert -0.01 < bias < -0.001           # the Voigt underestimates A by a few permille here
+    assert -0.01 < bias < -0.001  # the Voigt underestimates A by a few permille here
     assert abs(q.line_area / AREA - 1) < 1e-9
 
 
@@ -69,7 +70,7 @@ def test_ratio_uncertainty():
 
 def test_sloped_baseline_is_recovered():
     g = _g()
-    slope = 3e-15                       # 1/m per Hz: 3e-5 1/m across 10 GHz
+    slope = 3e-15  # 1/m per Hz: 3e-5 1/m across 10 GHz
     alpha = AREA * g.real + ALOSS + slope * (NU - NU0)
     s = SpectrumData("absorption", NU, alpha, 2e-5 * alpha)
     f = fit_line([s], "qsdhcp", GD, NU0, slopes=[True])
@@ -89,30 +90,41 @@ def test_cmds_area_estimator_is_unbiased_where_shape_is_unresolved():
     # The pull mean and sd of these 200 draws (se 0.07 and 0.05) are checked at 3 se.
     from bayes_tfcrds.core.linalg import central_jacobian
     from bayes_tfcrds.fit.line import LineModel
+
     rng = np.random.default_rng(7)
     g = _g()
     shift = C * AREA * g.imag / (4 * np.pi)
     u_s = 1e-3 * np.max(np.abs(shift)) * np.ones_like(shift)
     clean = [SpectrumData("dispersion", NU, shift + 3.0, u_s)]
     f0 = fit_line(clean, "qsdhcp", GD, NU0)
-    assert abs(f0.line_area / AREA - 1) < 1e-9       # noiseless: exact (no estimator bias)
-    model = LineModel("qsdhcp", ("gamma0_hz", "gamma2_hz", "nu_vc_hz"), ("dispersion",), (True,), NU0, GD, {})
-    jac = central_jacobian(lambda th: model.predict(th, clean)[0], f0.values,
-                           1e-6 * np.maximum(np.abs(f0.values), 1e-3 * GD)) / u_s[:, None]
+    assert abs(f0.line_area / AREA - 1) < 1e-9  # noiseless: exact (no estimator bias)
+    model = LineModel(
+        "qsdhcp", ("gamma0_hz", "gamma2_hz", "nu_vc_hz"), ("dispersion",), (True,), NU0, GD, {}
+    )
+    jac = (
+        central_jacobian(
+            lambda th: model.predict(th, clean)[0],
+            f0.values,
+            1e-6 * np.maximum(np.abs(f0.values), 1e-3 * GD),
+        )
+        / u_s[:, None]
+    )
     fisher = jac.T @ jac
     sd = np.sqrt(np.linalg.inv(fisher)[0, 0])
     gain = np.linalg.solve(fisher, jac.T)[0] / sd
     pulls, diffs, unphysical = [], [], 0
     for _ in range(200):
         e = rng.standard_normal(NU.size)
-        f = fit_line([SpectrumData("dispersion", NU, shift + 3.0 + u_s * e, u_s)], "qsdhcp", GD, NU0)
+        f = fit_line(
+            [SpectrumData("dispersion", NU, shift + 3.0 + u_s * e, u_s)], "qsdhcp", GD, NU0
+        )
         assert f.at_bound == ()
         pulls.append((f.line_area - AREA) / f.line_area_u)
         diffs.append((f.line_area - AREA) / sd - gain @ e)
         unphysical += bool(f.unphysical)
     assert np.std(diffs) < 0.1 and abs(np.mean(diffs)) < 0.03
     assert abs(np.mean(pulls)) < 3 / np.sqrt(200) and abs(np.std(pulls) - 1) < 3 * 0.05
-    assert unphysical > 20            # the regime under test: many estimates past a bound
+    assert unphysical > 20  # the regime under test: many estimates past a bound
 
 
 def test_negative_shape_estimates_are_reported_as_unphysical():
@@ -125,8 +137,12 @@ def test_negative_shape_estimates_are_reported_as_unphysical():
     u_s = 1e-3 * np.max(np.abs(shift)) * np.ones_like(shift)
     seen = False
     for _ in range(10):
-        f = fit_line([SpectrumData("dispersion", NU, shift + u_s * rng.standard_normal(NU.size), u_s)],
-                     "qsdhcp", GD, NU0)
+        f = fit_line(
+            [SpectrumData("dispersion", NU, shift + u_s * rng.standard_normal(NU.size), u_s)],
+            "qsdhcp",
+            GD,
+            NU0,
+        )
         neg = tuple(n for n in ("gamma2_hz", "nu_vc_hz") if f.value(n) < 0)
         assert f.unphysical == neg and f.at_bound == ()
         assert np.all(np.diag(f.cov) > 0)

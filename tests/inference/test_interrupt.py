@@ -7,6 +7,7 @@ The store-level tests reproduce the moments a kill can land inside a commit of t
 Every comparison is exact (``array_equal``, equal JSON, equal bytes): the sampler is deterministic
 given the seed, so a tolerance would only hide a broken resume.
 """
+
 from __future__ import annotations
 
 import json
@@ -30,7 +31,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from test_sampling import assert_same, reference_run, short_run  # noqa: E402
 
-STEPS = 200            # per ensemble: one chunk commit at 100 steps, the last at 200 (chunks of 100)
+STEPS = 200  # per ensemble: one chunk commit at 100 steps, the last at 200 (chunks of 100)
 SEED = 5
 OUTPUTS = ("budget.json", "budget.md", "budget.csv", "tau_posterior.csv")
 RUNS = ("h", "line", "cmds")
@@ -39,7 +40,10 @@ RUNS = ("h", "line", "cmds")
 # ----------------------------------------------------------------------------- chain store
 def _iterations(path):
     with h5py.File(path, "r") as f:
-        return [int(f[f"ensemble{i}"].attrs["iteration"]) if f"ensemble{i}" in f else 0 for i in range(4)]
+        return [
+            int(f[f"ensemble{i}"].attrs["iteration"]) if f"ensemble{i}" in f else 0
+            for i in range(4)
+        ]
 
 
 def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monkeypatch):
@@ -53,7 +57,7 @@ def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monke
     def interrupting(self, name, value):
         if name == "iteration" and int(value) > 0:
             commits.append(int(value))
-            if len(commits) == 2:       # the second commit (step 200) of ensemble 0
+            if len(commits) == 2:  # the second commit (step 200) of ensemble 0
                 raise KeyboardInterrupt
         return setitem(self, name, value)
 
@@ -71,10 +75,10 @@ def test_incomplete_last_commit_is_rolled_back(tmp_path):
     path = tmp_path / "chains.h5"
     short_run(n=200, backend_path=path)
     with h5py.File(path, "a") as f:
-        f["ensemble1/chain"][150:200] = 0.0                       # rows of the last chunk lost
+        f["ensemble1/chain"][150:200] = 0.0  # rows of the last chunk lost
         g = f["ensemble2"]
         slot = next(s for s in (0, 1) if g.attrs[f"bayes_tfcrds_state{s}_iteration"] == 200)
-        g.attrs[f"bayes_tfcrds_state{slot}_iteration"] = -1       # its state half-written
+        g.attrs[f"bayes_tfcrds_state{slot}_iteration"] = -1  # its state half-written
     assert_same(short_run(n=200, backend_path=path), reference_run(200))
     assert _iterations(path) == [200] * 4
 
@@ -83,11 +87,14 @@ def test_unreadable_chain_file_is_moved_aside_and_resampled(tmp_path):
     path = tmp_path / "chains.h5"
     short_run(n=200, backend_path=path)
     data = path.read_bytes()
-    path.write_bytes(data[: len(data) // 3])                      # truncated by a crash
+    path.write_bytes(data[: len(data) // 3])  # truncated by a crash
     with pytest.warns(RuntimeWarning, match="cannot be read.*moved to .*damaged"):
         resumed = short_run(n=200, backend_path=path)
     assert_same(resumed, reference_run(200))
-    assert sorted(p.name.split("-")[0] for p in tmp_path.iterdir()) == ["chains.h5", "chains.h5.damaged"]
+    assert sorted(p.name.split("-")[0] for p in tmp_path.iterdir()) == [
+        "chains.h5",
+        "chains.h5.damaged",
+    ]
 
 
 def test_chain_file_in_use_by_another_run_is_left_alone(tmp_path):
@@ -95,9 +102,16 @@ def test_chain_file_in_use_by_another_run_is_left_alone(tmp_path):
     file for a damaged one and move it aside under the first."""
     path = tmp_path / "chains.h5"
     short_run(n=100, backend_path=path)
-    holder = subprocess.Popen([sys.executable, "-c", "import h5py, sys, time\n"
-                               f"f = h5py.File({str(path)!r}, 'a'); print('open', flush=True); time.sleep(60)"],
-                              stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            f"import h5py, sys, time\nf = h5py.File({str(path)!r}, 'a'); print('open', "
+            "flush=True); time.sleep(60)",
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "open"
         with pytest.raises(RuntimeError, match="open in another process"):
@@ -112,8 +126,20 @@ def test_chain_file_in_use_by_another_run_is_left_alone(tmp_path):
 def _command(bundle, out):
     exe = Path(sys.executable).with_name("bayes-tfcrds")
     head = [str(exe)] if exe.exists() else [sys.executable, "-m", "bayes_tfcrds.cli"]
-    return head + ["budget", str(bundle), "--config", "D2", "--seed", str(SEED), "--steps", str(STEPS),
-                   "--max-steps", str(STEPS), "-o", str(out)]
+    return head + [
+        "budget",
+        str(bundle),
+        "--config",
+        "D2",
+        "--seed",
+        str(SEED),
+        "--steps",
+        str(STEPS),
+        "--max-steps",
+        str(STEPS),
+        "-o",
+        str(out),
+    ]
 
 
 def _env():
@@ -122,7 +148,9 @@ def _env():
 
 
 def _run(bundle, out):
-    proc = subprocess.run(_command(bundle, out), capture_output=True, text=True, env=_env(), timeout=400)
+    proc = subprocess.run(
+        _command(bundle, out), capture_output=True, text=True, env=_env(), timeout=400
+    )
     # 3 = ran to the end but the (deliberately short) chains miss the convergence gates
     assert proc.returncode == 3, proc.stderr[-3000:]
     assert "FAILED: failed: convergence gates not met" in proc.stderr
@@ -133,8 +161,9 @@ class _Watched:
     """A budget command whose stderr (tqdm progress) is read as it is written."""
 
     def __init__(self, bundle, out):
-        self.proc = subprocess.Popen(_command(bundle, out), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                                     env=_env())
+        self.proc = subprocess.Popen(
+            _command(bundle, out), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env()
+        )
         self.text = ""
         self._lock = threading.Lock()
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -173,7 +202,10 @@ def _sampling_line_ensemble_1(text):
 
 
 def _chains(out):
-    """Every committed row of every chain file: {(run, ensemble): (chain, log_prob, accepted_step)}."""
+    """Every committed row of every chain file.
+
+    As {(run, ensemble): (chain, log_prob, accepted_step)}.
+    """
     rows = {}
     for run in RUNS:
         with h5py.File(out / f"chains_{run}.h5", "r") as f:
@@ -186,20 +218,26 @@ def _chains(out):
 
 def _posteriors(out):
     import arviz as az
+
     values = {}
     for run in RUNS:
         idata = az.from_netcdf(out / f"posterior_{run}.nc")
         for group in ("posterior", "sample_stats"):
             ds = idata[group]
             values.update({(run, group, k): ds[k].values for k in ds.data_vars})
-        values[run, "attrs"] = {k: v for k, v in idata.posterior.attrs.items()
-                                if k not in ("created_at", "arviz_version", "inference_library_version")}
+        values[run, "attrs"] = {
+            k: v
+            for k, v in idata.posterior.attrs.items()
+            if k not in ("created_at", "arviz_version", "inference_library_version")
+        }
     return values
 
 
 def _assert_same_outputs(out, ref):
     """The interrupted-and-resumed run's outputs equal the uninterrupted run's, exactly."""
-    assert json.loads((out / "budget.json").read_text()) == json.loads((ref / "budget.json").read_text())
+    assert json.loads((out / "budget.json").read_text()) == json.loads(
+        (ref / "budget.json").read_text()
+    )
     for name in OUTPUTS[1:]:
         assert (out / name).read_bytes() == (ref / name).read_bytes(), name
     a, b = _chains(out), _chains(ref)
@@ -211,14 +249,17 @@ def _assert_same_outputs(out, ref):
     assert pa.keys() == pb.keys()
     for key in pa:
         if key[1] == "attrs":
-            assert {k: str(v) for k, v in pa[key].items()} == {k: str(v) for k, v in pb[key].items()}, key
+            assert {k: str(v) for k, v in pa[key].items()} == {
+                k: str(v) for k, v in pb[key].items()
+            }, key
         else:
             assert np.array_equal(pa[key], pb[key]), key
 
 
 def _assert_outputs_whole(out):
-    """Every output file present in ``out`` is complete and readable; temporary names do not count."""
+    """Every output file present in ``out`` is complete and readable (temporary names aside)."""
     import arviz as az
+
     for p in out.iterdir():
         if p.name.startswith("."):
             continue
@@ -230,7 +271,9 @@ def _assert_outputs_whole(out):
         elif p.suffix == ".nc":
             assert az.from_netcdf(p).posterior.sizes["draw"] > 0, p
         elif p.suffix == ".png":
-            assert p.read_bytes()[-12:] == b"\x00\x00\x00\x00IEND\xaeB`\x82", p   # PNG's closing chunk
+            assert p.read_bytes()[-12:] == b"\x00\x00\x00\x00IEND\xaeB`\x82", (
+                p
+            )  # PNG's closing chunk
         elif p.suffix == ".h5":
             _iterations(p)
         else:
@@ -242,8 +285,24 @@ def reference(tmp_path_factory):
     """A small simulated bundle and the outputs of one uninterrupted budget run on it."""
     root = tmp_path_factory.mktemp("interrupt")
     bundle = root / "campaign.h5"
-    assert main(["simulate", "--preset", "letter-D2", "--points", "15", "--samples", "2048", "--seed", "1",
-                 "-o", str(bundle)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--preset",
+                "letter-D2",
+                "--points",
+                "15",
+                "--samples",
+                "2048",
+                "--seed",
+                "1",
+                "-o",
+                str(bundle),
+            ]
+        )
+        == 0
+    )
     out = root / "reference"
     _run(bundle, out)
     return bundle, out
@@ -257,7 +316,9 @@ def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_
     run.wait_for(_sampling_line_ensemble_1, "the line posterior's ensemble 1 sampling")
     rc = run.stop(sig)
     if sig == signal.SIGINT:
-        assert rc == 130 and "interrupted: the chains sampled so far are kept" in run.text, run.text[-2000:]
+        assert rc == 130 and "interrupted: the chains sampled so far are kept" in run.text, (
+            run.text[-2000:]
+        )
         assert "Traceback" not in run.text
     else:
         assert rc == -signal.SIGKILL
@@ -269,7 +330,7 @@ def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_
     h_stat = (out / "chains_h.h5").stat()
     kept = {e: _chains_rows(out / "chains_line.h5", e) for e in (0, 1)}
 
-    _run(bundle, out)                                   # the same command again
+    _run(bundle, out)  # the same command again
     # resumed, not restarted: the finished H chains were read, never rewritten, and the committed
     # line rows are the beginning of the final chains
     assert (out / "chains_h.h5").stat().st_mtime_ns == h_stat.st_mtime_ns
@@ -288,11 +349,14 @@ def _chains_rows(path, e):
 
 def test_sigkill_while_writing_outputs_leaves_no_half_written_file(reference, tmp_path):
     """Killed as soon as the first output appears, i.e. while the others are being written (the
-    corner plots and netCDF files take seconds). Whatever is there is whole; a rerun completes it."""
+    corner plots and netCDF files take seconds). Whatever is there is whole; a rerun completes
+    it."""
     bundle, ref = reference
     out = tmp_path / "run"
-    shutil.copytree(ref, out, ignore=shutil.ignore_patterns("budget*", "tau_*", "posterior_*", "corner_*"))
-    run = _Watched(bundle, out)            # every chain is committed: straight to the outputs
+    shutil.copytree(
+        ref, out, ignore=shutil.ignore_patterns("budget*", "tau_*", "posterior_*", "corner_*")
+    )
+    run = _Watched(bundle, out)  # every chain is committed: straight to the outputs
     run.wait_for(lambda _: (out / "budget.json").exists(), "budget.json being written")
     assert run.stop(signal.SIGKILL) == -signal.SIGKILL
     present = {p.name for p in out.iterdir() if not p.name.startswith(".")}
@@ -300,4 +364,6 @@ def test_sigkill_while_writing_outputs_leaves_no_half_written_file(reference, tm
     _assert_outputs_whole(out)
     _run(bundle, out)
     _assert_same_outputs(out, ref)
-    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]   # stale temporaries removed
+    assert not [
+        p.name for p in out.iterdir() if p.name.startswith(".")
+    ]  # stale temporaries removed

@@ -3,6 +3,7 @@
 Targets are cheap closed-form densities so that every number has a known answer; each
 test is built to fail if the property it names breaks (see the comments on the asserts).
 """
+
 from __future__ import annotations
 
 import functools
@@ -46,11 +47,18 @@ def short_run(seed=3, n=300, **kw):
     """A run too short to pass (max_steps = n), used where only equality matters."""
     kw.setdefault("vectorize", True)
     kw.setdefault("n_walkers", W)
-    return run_ensembles(kw.pop("log_prob", gauss_logp), gauss_p0, NAMES,
-                         np.random.default_rng(seed), n_steps=n, max_steps=n, **kw)
+    return run_ensembles(
+        kw.pop("log_prob", gauss_logp),
+        gauss_p0,
+        NAMES,
+        np.random.default_rng(seed),
+        n_steps=n,
+        max_steps=n,
+        **kw,
+    )
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def reference_run(n):
     """Uninterrupted in-memory run (results are immutable, so tests may share them)."""
     return short_run(n=n)
@@ -93,7 +101,9 @@ def test_ess_and_tau_match_ar1_truth(phi):
     assert d["rhat"] < 1.01
     if phi == 0.0:  # iid: the tail indicator is iid too, tail ESS ~ N
         assert d["ess_tail"] == pytest.approx(n_total, rel=0.10)
-    if phi > 0.0:  # exact tail ESS from the bivariate normal: corr of 1[x_t <= q05], 1[x_t+k <= q05]
+    if (
+        phi > 0.0
+    ):  # exact tail ESS from the bivariate normal: corr of 1[x_t <= q05], 1[x_t+k <= q05]
         from scipy.stats import multivariate_normal, norm
 
         q, p = norm.ppf(0.05), 0.05
@@ -132,9 +142,17 @@ def test_derived_quantities_are_gated():
 
 # ----------------------------------------------------------------------------- Gaussian
 def test_correlated_gaussian_recovered_and_gates_pass():
-    r = run_ensembles(gauss_logp, gauss_p0, NAMES, np.random.default_rng(2024), n_walkers=W,
-                      n_steps=3300, max_steps=5000, vectorize=True,
-                      derived_fn=lambda s: {"a_plus_b": s[:, 0] + s[:, 1]})
+    r = run_ensembles(
+        gauss_logp,
+        gauss_p0,
+        NAMES,
+        np.random.default_rng(2024),
+        n_walkers=W,
+        n_steps=3300,
+        max_steps=5000,
+        vectorize=True,
+        derived_fn=lambda s: {"a_plus_b": s[:, 0] + s[:, 1]},
+    )
     assert r.passed and r.status == "passed", r.status
     assert r.rhat_max < 1.01 and r.ess_min > 400
     e, s, w, _ = r.samples.shape
@@ -155,14 +173,16 @@ def test_correlated_gaussian_recovered_and_gates_pass():
     d = r.derived["a_plus_b"].ravel()
     assert r.diagnostics["a_plus_b"]["ess_bulk"] > 400
     var_ab = COV[0, 0] + COV[1, 1] + 2 * COV[0, 1]
-    assert abs(d.mean() - (MU[0] + MU[1])) < 4 * np.sqrt(var_ab / r.diagnostics["a_plus_b"]["ess_bulk"])
+    assert abs(d.mean() - (MU[0] + MU[1])) < 4 * np.sqrt(
+        var_ab / r.diagnostics["a_plus_b"]["ess_bulk"]
+    )
 
     # ESS in a sensible range: far below the raw draw count (walkers are not independent)
     # and consistent with an independent batch-means estimate of Var(posterior mean)
     for i, n in enumerate(NAMES):
         diag = r.diagnostics[n]
         assert flat.shape[0] / (2 * diag["tau_int"]) < diag["ess_bulk"] < flat.shape[0] / 10
-        step_means = r.samples[..., i].mean(axis=2)                 # (E, S) walker averages
+        step_means = r.samples[..., i].mean(axis=2)  # (E, S) walker averages
         nb = 8
         batches = step_means[:, : s // nb * nb].reshape(e, nb, -1).mean(axis=2).ravel()
         var_mean = batches.var(ddof=1) / batches.size
@@ -171,8 +191,16 @@ def test_correlated_gaussian_recovered_and_gates_pass():
 
 
 def test_too_short_run_is_reported_as_failed_not_passed():
-    r = run_ensembles(gauss_logp, gauss_p0, NAMES, np.random.default_rng(1), n_walkers=W,
-                      n_steps=200, max_steps=320, vectorize=True)
+    r = run_ensembles(
+        gauss_logp,
+        gauss_p0,
+        NAMES,
+        np.random.default_rng(1),
+        n_walkers=W,
+        n_steps=200,
+        max_steps=320,
+        vectorize=True,
+    )
     assert not r.passed
     assert r.n_steps == 320  # extended 200 -> 300 -> 320 (capped at max_steps)
     assert r.status.startswith("failed after 320 steps") and "n_tau(" in r.status
@@ -191,8 +219,16 @@ def bimodal_p0(rng, n):
 
 
 def test_bimodal_ensembles_stuck_in_different_modes_fail_rhat():
-    r = run_ensembles(bimodal_logp, bimodal_p0, ("x", "y"), np.random.default_rng(1),
-                      n_walkers=8, n_steps=300, max_steps=450, vectorize=True)
+    r = run_ensembles(
+        bimodal_logp,
+        bimodal_p0,
+        ("x", "y"),
+        np.random.default_rng(1),
+        n_walkers=8,
+        n_steps=300,
+        max_steps=450,
+        vectorize=True,
+    )
     means = r.samples[..., 0].mean(axis=(1, 2))
     assert np.any(means > 0) and np.any(means < 0)  # the seed does put them in both modes
     assert not r.passed and r.n_steps == 450
@@ -222,8 +258,7 @@ def test_chunking_scalar_log_prob_and_pool_do_not_change_the_chains():
             return list(map(f, it))
 
     ref = short_run(n=120, log_prob=gauss_logp_scalar, vectorize=False)
-    assert_same(ref, short_run(n=120, log_prob=gauss_logp_scalar, vectorize=False,
-                               chunk_steps=37))
+    assert_same(ref, short_run(n=120, log_prob=gauss_logp_scalar, vectorize=False, chunk_steps=37))
     pooled = short_run(n=120, log_prob=gauss_logp_scalar, vectorize=False, pool=CountingPool())
     assert CountingPool.calls > 0
     assert_same(ref, pooled)
@@ -239,9 +274,15 @@ def test_bad_arguments_are_refused():
     with pytest.raises(ValueError, match="at least 4"):
         short_run(n=10, n_ensembles=3)
     with pytest.raises(ValueError, match="non-finite log_prob"):
-        run_ensembles(lambda x: np.where(x[:, 0] > 100, -np.inf, gauss_logp(x)),
-                      lambda g, n: 1000 + g.normal(size=(n, 3)), NAMES,
-                      np.random.default_rng(0), n_walkers=W, n_steps=10, vectorize=True)
+        run_ensembles(
+            lambda x: np.where(x[:, 0] > 100, -np.inf, gauss_logp(x)),
+            lambda g, n: 1000 + g.normal(size=(n, 3)),
+            NAMES,
+            np.random.default_rng(0),
+            n_walkers=W,
+            n_steps=10,
+            vectorize=True,
+        )
 
 
 # ----------------------------------------------------------------------------- resume
@@ -263,8 +304,10 @@ class CountingLogp:
 
 def _iterations(path):
     with h5py.File(path, "r") as f:
-        return [int(f[f"ensemble{i}"].attrs["iteration"]) if f"ensemble{i}" in f else 0
-                for i in range(4)]
+        return [
+            int(f[f"ensemble{i}"].attrs["iteration"]) if f"ensemble{i}" in f else 0
+            for i in range(4)
+        ]
 
 
 def test_resume_from_backend_equals_uninterrupted_run(tmp_path):
@@ -279,7 +322,7 @@ def test_resume_from_backend_equals_uninterrupted_run(tmp_path):
     # the file is a plain emcee HDFBackend
     be = emcee.backends.HDFBackend(str(path), name="ensemble2", read_only=True)
     assert be.iteration == 400
-    assert np.array_equal(be.get_chain()[resumed.burn:], resumed.samples[2])
+    assert np.array_equal(be.get_chain()[resumed.burn :], resumed.samples[2])
     # rerunning a finished run samples nothing and returns the same result
     again = CountingLogp()
     assert_same(short_run(n=400, backend_path=path, log_prob=again), reference_run(400))
@@ -310,9 +353,8 @@ def test_sigkill_then_rerun_equals_uninterrupted(tmp_path):
     here = os.path.dirname(os.path.abspath(__file__))
     kill_after = 2 * ROWS_PER_ENSEMBLE + 130 * W  # inside ensemble 2, after one chunk
     script = (
-        f"import sys; sys.path.insert(0, {here!r}); import test_sampling as t\n"
-        f"t.short_run(n=400, backend_path={str(path)!r}, "
-        f"log_prob=t.CountingLogp(kill_after={kill_after}))\n"
+        f"import sys; sys.path.insert(0, {here!r}); import test_sampling as t\nt.short_run(n=400, "
+        f"backend_path={str(path)!r}, log_prob=t.CountingLogp(kill_after={kill_after}))\n"
     )
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
@@ -337,8 +379,9 @@ def test_inference_data_round_trips_through_netcdf(tmp_path):
     for ens, walker in [(0, 0), (1, 3), (3, W - 1)]:
         assert np.array_equal(post["b"].values[ens * W + walker], r.samples[ens, :, walker, 1])
         assert np.array_equal(post["ab"].values[ens * W + walker], r.derived["ab"][ens, :, walker])
-        assert np.array_equal(idata.sample_stats["lp"].values[ens * W + walker],
-                              r.log_prob[ens, :, walker])
+        assert np.array_equal(
+            idata.sample_stats["lp"].values[ens * W + walker], r.log_prob[ens, :, walker]
+        )
     assert int(post.attrs["n_ensembles"]) == 4 and int(post.attrs["n_walkers"]) == W
     assert json.loads(post.attrs["diagnostics"]) == r.diagnostics
     assert post.attrs["status"] == r.status and int(post.attrs["passed"]) == int(r.passed)

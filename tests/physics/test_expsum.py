@@ -1,13 +1,14 @@
-"""The exponential-sum fit path (expsum.py) against direct sums and the dense FFT path."""
+"""The exponential-sum fit path (physics/expsum.py) against direct sums and the dense FFT path."""
+
 import numpy as np
 import pytest
 
-from bayes_tfcrds.physics.detection_chain import chain_from_tf
-from bayes_tfcrds.physics.expsum import BlockedData, TAYLOR_RADIUS, SumsModel, model_sums, powers
 from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
+from bayes_tfcrds.physics.expsum import TAYLOR_RADIUS, BlockedData, SumsModel, model_sums, powers
 from bayes_tfcrds.physics.transfer_function import TFParams
 
-DT, K, T0 = 20e-9, 3000, -1.01e-6          # K not a multiple of the block; t0 off the grid
+DT, K, T0 = 20e-9, 3000, -1.01e-6  # K not a multiple of the block; t0 off the grid
 T = T0 + DT * np.arange(K)
 D2_LIKE = TFParams(f_c_hz=6.0e4, a_r=15.0, f_r_hz=6.0e6, gamma_r=0.7, n_r=2.0, variant="causal")
 
@@ -40,15 +41,17 @@ def test_data_sums_and_moments_equal_direct_sums():
     mom = d.moments(lam0, np.arange(3))
     for r in range(3):
         u = DT * np.arange(K - first[r])
-        yy = w[r] * y[r, first[r]:]
+        yy = w[r] * y[r, first[r] :]
         for c in range(2):
             ref = np.sum(yy * np.exp(lam[r, c] * u))
             assert abs(got[r, c] - ref) <= 1e-13 * np.sum(np.abs(yy * np.exp(lam[r, c].real * u)))
         s = -1 / lam0[r]
         for k in range(mom.shape[1]):
             ref = np.sum(yy * (u / s) ** k * np.exp(lam0[r] * u))
-            assert abs(mom[r, k] - ref) <= 1e-12 * np.sum(np.abs(yy) * (u / s) ** k * np.exp(lam0[r] * u))
-    assert d.sum_wy == pytest.approx([np.sum(w[r] * y[r, first[r]:]) for r in range(3)], rel=1e-13)
+            assert abs(mom[r, k] - ref) <= 1e-12 * np.sum(
+                np.abs(yy) * (u / s) ** k * np.exp(lam0[r] * u)
+            )
+    assert d.sum_wy == pytest.approx([np.sum(w[r] * y[r, first[r] :]) for r in range(3)], rel=1e-13)
 
 
 def test_taylor_moments_give_the_data_sums_inside_their_radius():
@@ -58,12 +61,12 @@ def test_taylor_moments_give_the_data_sums_inside_their_radius():
     d = BlockedData(y[None], first, np.array([0]), np.array([1.0]), DT)
     m = SumsModel(d, None, T[first], np.array([3e-6]))
     rows = np.array([0])
-    m._data_at(np.array([5e-6]), rows)                       # centre the moments at 5 us
+    m._data_at(np.array([5e-6]), rows)  # centre the moments at 5 us
     for tau in (5e-6 / (1 + 0.9 * TAYLOR_RADIUS), 5e-6 / (1 - 0.9 * TAYLOR_RADIUS)):
         y0, y1 = m._data_at(np.array([tau]), rows)
-        assert m.lam0[0] == pytest.approx(-1 / 5e-6)         # no recentring inside the radius
+        assert m.lam0[0] == pytest.approx(-1 / 5e-6)  # no recentring inside the radius
         u = DT * np.arange(K - first[0])
-        e = y[first[0]:] * np.exp(-u / tau)
+        e = y[first[0] :] * np.exp(-u / tau)
         assert y0[0] == pytest.approx(e.sum(), rel=1e-13)
         assert y1[0] == pytest.approx((u * e).sum(), rel=1e-12)
 
@@ -95,12 +98,22 @@ def test_sum_path_equals_dense_path():
     rows = np.repeat(np.arange(8), 3)
     tc = np.tile([2e-6, 4e-6, 6e-6], 8)
     one = np.full(8, sigma)
-    per_sample = np.full((8, K), sigma)                       # takes the dense (FFT) path
+    per_sample = np.full((8, K), sigma)  # takes the dense (FFT) path
     for method in ("crds", "tf-crds"):
-        fast = fit_transients(T, y, tc, method, D2_LIKE, "extinction", noise_v=one, rows_of=rows,
-                              keep_residuals=True)
-        dense = fit_transients(T, y, tc, method, D2_LIKE, "extinction", noise_v=per_sample, rows_of=rows,
-                               keep_residuals=True)
+        fast = fit_transients(
+            T, y, tc, method, D2_LIKE, "extinction", noise_v=one, rows_of=rows, keep_residuals=True
+        )
+        dense = fit_transients(
+            T,
+            y,
+            tc,
+            method,
+            D2_LIKE,
+            "extinction",
+            noise_v=per_sample,
+            rows_of=rows,
+            keep_residuals=True,
+        )
         # CRDS: the same model, so agreement to rounding; TF-CRDS: exact convolution vs the DFT
         # model, whose discretisation (H aliased above Nyquist) moves tau by ~1e-4 u(tau)
         tol = 1e-8 if method == "crds" else 2e-3
@@ -119,8 +132,15 @@ def test_letter_window_and_fractional_order_keep_the_fft_path():
     let = fit_transients(T, y, [3e-6], "tf-crds", D2_LIKE, "letter", noise_v=[1e-4])
     # the letter window models the history before t_cut as flat: a visible tau bias (Fig. 3)
     assert abs(let.tau_s[0] / ext.tau_s[0] - 1) > 1e-3
-    frac = fit_transients(T, y, [3e-6], "tf-crds", TFParams(**{**D2_LIKE.__dict__, "n_r": 1.9}), "extinction",
-                          noise_v=[1e-4])
+    frac = fit_transients(
+        T,
+        y,
+        [3e-6],
+        "tf-crds",
+        TFParams(**{**D2_LIKE.__dict__, "n_r": 1.9}),
+        "extinction",
+        noise_v=[1e-4],
+    )
     assert np.isfinite(frac.tau_s[0]) and frac.converged[0]
 
 
@@ -128,7 +148,9 @@ def test_letter_window_and_fractional_order_keep_the_fft_path():
 # The two exponentials of the closed form coincide there and their coefficients diverge and
 # cancel; the chain's response and the fit's sums must stay exact (review finding: a fit with
 # |1 + p tau| <= 1e-4 used to return NaN).
-SLOW = TFParams(f_c_hz=1.938e4, a_r=19.28, f_r_hz=7e6, gamma_r=0.7, n_r=2.0, variant="causal")   # letter-D3
+SLOW = TFParams(
+    f_c_hz=1.938e4, a_r=19.28, f_r_hz=7e6, gamma_r=0.7, n_r=2.0, variant="causal"
+)  # letter-D3
 
 
 def _tau_at_real_pole(chain):
@@ -137,14 +159,27 @@ def _tau_at_real_pole(chain):
 
 
 def _quadrature_response(chain, t, tau):
-    """D x(t) + int_0^inf h(s) x(t - s) ds by adaptive quadrature: independent of the closed form."""
+    """D x(t) + int_0^inf h(s) x(t - s) ds by adaptive quadrature (not the closed form)."""
     from scipy import integrate
-    h = lambda s: float(chain.impulse_response(np.array([s]))[0])
-    x = lambda v: 1.0 if v < 0 else np.exp(-v / tau)
+
+    def h(s):
+        return float(chain.impulse_response(np.array([s]))[0])
+
+    def x(v):
+        return 1.0 if v < 0 else np.exp(-v / tau)
+
     def q(f, lo, hi):
         cuts = [lo] + [v for v in (1e-6, 50e-6) if lo < v < hi] + [hi]
-        return sum(integrate.quad(f, a, b, limit=400, epsabs=1e-15, epsrel=1e-13)[0] for a, b in zip(cuts, cuts[1:]))
-    return chain.direct * x(t) + (q(lambda s: h(s) * x(t - s), 0.0, t) if t > 0 else 0.0) + q(h, t, 600e-6)
+        return sum(
+            integrate.quad(f, a, b, limit=400, epsabs=1e-15, epsrel=1e-13)[0]
+            for a, b in zip(cuts, cuts[1:])
+        )
+
+    return (
+        chain.direct * x(t)
+        + (q(lambda s: h(s) * x(t - s), 0.0, t) if t > 0 else 0.0)
+        + q(h, t, 600e-6)
+    )
 
 
 @pytest.mark.parametrize("delta", [0.0, 1e-9, -1e-5, 1e-3, 0.3])
@@ -156,7 +191,7 @@ def test_ringdown_response_is_exact_at_a_real_pole(delta):
     ref = [_quadrature_response(chain, t, tau) for t in ts]
     # quadrature to ~1e-13 absolute; the closed form was off by ~eps/|1 + p tau| before
     np.testing.assert_allclose(g[0], ref, rtol=0, atol=1e-12)
-    h = 1e-5 * tau                                     # central difference: O(h^2) ~ 1e-10 relative
+    h = 1e-5 * tau  # central difference: O(h^2) ~ 1e-10 relative
     fd = (chain.ringdown_response(ts, [tau + h]) - chain.ringdown_response(ts, [tau - h])) / (2 * h)
     np.testing.assert_allclose(dg, fd, rtol=0, atol=1e-8 * np.max(np.abs(dg)))
 
@@ -170,12 +205,16 @@ def test_fits_with_tau_at_a_real_pole_converge_to_the_truth():
     tc = np.full(taus.size, 4e-6)
     f = fit_transients(t, y, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(taus.size, 1e-4))
     assert np.all(f.converged)
-    np.testing.assert_allclose(f.tau_s, taus, rtol=1e-10)      # noiseless exact data: to rounding
+    np.testing.assert_allclose(f.tau_s, taus, rtol=1e-10)  # noiseless exact data: to rounding
     rng = np.random.default_rng(5)
     sigma = 1e-4
     noisy = y + sigma * rng.standard_normal(y.shape)
-    fast = fit_transients(t, noisy, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(taus.size, sigma))
-    dense = fit_transients(t, noisy, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(y.shape, sigma))
+    fast = fit_transients(
+        t, noisy, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(taus.size, sigma)
+    )
+    dense = fit_transients(
+        t, noisy, tc, "tf-crds", SLOW, "extinction", noise_v=np.full(y.shape, sigma)
+    )
     assert np.all(fast.converged) and np.all(np.isfinite(fast.tau_u_s))
     # against the FFT path (a different evaluation of the same model): its discretisation, ~1e-3 u
     assert np.max(np.abs(fast.tau_s - dense.tau_s) / dense.tau_u_s) < 1e-2
@@ -190,10 +229,21 @@ def test_chi2_stays_right_at_very_high_signal_to_noise(method):
     chain = chain_from_tf(D2_LIKE)
     taus = np.array([3e-6, 9e-6])
     sigma = 1e-8
-    y = (1.0 + chain.ringdown_response(T, taus) if method == "tf-crds"
-         else 1.0 + np.exp(-np.clip(T, 0, None) / taus[:, None])) + sigma * rng.standard_normal((2, K))
-    f = fit_transients(T, y, [2e-6, 2e-6], method, D2_LIKE, "extinction", noise_v=np.full(2, sigma),
-                       keep_residuals=True)
+    y = (
+        1.0 + chain.ringdown_response(T, taus)
+        if method == "tf-crds"
+        else 1.0 + np.exp(-np.clip(T, 0, None) / taus[:, None])
+    ) + sigma * rng.standard_normal((2, K))
+    f = fit_transients(
+        T,
+        y,
+        [2e-6, 2e-6],
+        method,
+        D2_LIKE,
+        "extinction",
+        noise_v=np.full(2, sigma),
+        keep_residuals=True,
+    )
     direct = (f.residuals_v**2).sum(-1) / sigma**2
     np.testing.assert_allclose(f.chi2, direct, rtol=1e-6)
     # and chi2/dof is what white noise gives: 1 +/- 5 sd of sqrt(2/dof)

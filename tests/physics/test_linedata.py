@@ -1,4 +1,5 @@
 """Tests of the shipped line data and its conversion to SI."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -8,10 +9,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
-from bayes_tfcrds.physics import linedata
 from bayes_tfcrds.core.constants import ATM, TORR
-from bayes_tfcrds.physics.lineshape import SHAPE_PARAMETERS, profile
+from bayes_tfcrds.physics import linedata
 from bayes_tfcrds.physics.linedata import LineData, available_lines, load_line
+from bayes_tfcrds.physics.lineshape import SHAPE_PARAMETERS, profile
 
 FILE = "co_3-0_R23.toml"
 
@@ -24,13 +25,16 @@ def _raw():
 def test_file_parses_and_every_number_is_cited():
     raw = _raw()
     assert raw["name"] == "CO (3-0) R(23)"
-    numeric = [k for k, v in raw.items()
-               if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "schema"]
+    numeric = [
+        k
+        for k, v in raw.items()
+        if isinstance(v, (int, float)) and not isinstance(v, bool) and k != "schema"
+    ]
     assert len(numeric) >= 15
     for key in numeric:
         entry = raw["sources"][key]
         assert isinstance(entry["estimate"], bool)
-        assert len(entry["reference"]) > 40, key          # a real citation, not a stub
+        assert len(entry["reference"]) > 40, key  # a real citation, not a stub
     # the measured core of the line is not an estimate; the guessed parts say so
     for key in ("nu0_cm", "intensity_cm_per_molecule", "gamma0_self_cm_per_atm", "mass_u"):
         assert raw["sources"][key]["estimate"] is False
@@ -39,7 +43,8 @@ def test_file_parses_and_every_number_is_cited():
     # position near 6410.88 cm^-1 and the HITRAN and letter intensities agree to < 0.5 %
     assert raw["nu0_cm"] == pytest.approx(6410.88, abs=0.01)
     assert raw["intensity_cm_per_molecule"] == pytest.approx(
-        raw["hitran_intensity_cm_per_molecule"], rel=5e-3)
+        raw["hitran_intensity_cm_per_molecule"], rel=5e-3
+    )
 
 
 def test_intensity_is_the_letters_value():
@@ -65,7 +70,8 @@ def test_unit_conversions_by_hand():
     # and the generic rule: value_Hz_per_Pa = value_cm_per_atm * 100 c / 101325
     raw = _raw()
     assert line.nu_vc_hz_per_pa == pytest.approx(
-        raw["nu_vc_self_cm_per_atm"] * 2.99792458e10 / 101325.0, rel=1e-14)
+        raw["nu_vc_self_cm_per_atm"] * 2.99792458e10 / 101325.0, rel=1e-14
+    )
 
 
 def test_shape_at_pure_and_mixed():
@@ -82,13 +88,16 @@ def test_shape_at_pure_and_mixed():
     # half CO in air at 1 atm and 296 K: the average of the self and air coefficients
     mixed = line.shape_at(ATM, 296.0, 0.5)
     assert mixed["gamma0_hz"] == pytest.approx(
-        0.5 * ATM * (line.gamma0_hz_per_pa + line.gamma0_air_hz_per_pa), rel=1e-14)
+        0.5 * ATM * (line.gamma0_hz_per_pa + line.gamma0_air_hz_per_pa), rel=1e-14
+    )
     # only the air width has a temperature exponent: (296/T)^0.67
     hot = line.shape_at(ATM, 350.0, 0.0)
     assert hot["gamma0_hz"] == pytest.approx(
-        ATM * line.gamma0_air_hz_per_pa * (296.0 / 350.0) ** 0.67, rel=1e-14)
+        ATM * line.gamma0_air_hz_per_pa * (296.0 / 350.0) ** 0.67, rel=1e-14
+    )
     assert line.shape_at(ATM, 350.0, 1.0)["gamma0_hz"] == pytest.approx(
-        ATM * line.gamma0_hz_per_pa, rel=1e-14)
+        ATM * line.gamma0_hz_per_pa, rel=1e-14
+    )
     # broadcasting over pressure
     arr = line.shape_at(np.array([1.0, 2.0]) * TORR, 296.0)
     assert arr["gamma0_hz"].shape == (2,)

@@ -1,10 +1,11 @@
-"""Tests of the complex line profiles in bayes_tfcrds.lineshape.
+"""Tests of the complex line profiles in bayes_tfcrds.physics.lineshape.
 
 Every comparison says what it is compared against and why its tolerance is what it is.
 Units: the package works in Hz (profile values in 1/Hz); hitran-api works in cm^-1
 (values per cm^-1). 1 cm^-1 = 100 c Hz, so nu_Hz = 100 c sigma_cm and
 g_per_cm = 100 c g_per_Hz.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -19,14 +20,24 @@ from scipy.special import voigt_profile, wofz
 
 import bayes_tfcrds.physics.lineshape as ls
 from bayes_tfcrds.core.constants import C
-from bayes_tfcrds.physics.lineshape import PROFILES, doppler_hwhm_hz, gaussian, hard_collision, lorentzian, profile, qsdhcp, sdvoigt, voigt
+from bayes_tfcrds.physics.lineshape import (
+    PROFILES,
+    doppler_hwhm_hz,
+    gaussian,
+    hard_collision,
+    lorentzian,
+    profile,
+    qsdhcp,
+    sdvoigt,
+    voigt,
+)
 
-with contextlib.redirect_stdout(io.StringIO()):      # hapi prints a banner on import
+with contextlib.redirect_stdout(io.StringIO()):  # hapi prints a banner on import
     import hapi
 
-CM = 100.0 * C                        # Hz per cm^-1
-NU0 = 6410.88 * CM                    # CO (3-0) R(23), Hz
-GD = 0.0074653 * CM                   # its Doppler HWHM at 296 K, Hz (~224 MHz)
+CM = 100.0 * C  # Hz per cm^-1
+NU0 = 6410.88 * CM  # CO (3-0) R(23), Hz
+GD = 0.0074653 * CM  # its Doppler HWHM at 296 K, Hz (~224 MHz)
 SQRT_LN2 = np.sqrt(np.log(2.0))
 
 
@@ -47,8 +58,9 @@ def _ref_speed_average(det, gd, g0, g2=0.0, d0=0.0, d2=0.0, nvc=0.0):
         b = nvc + g0 + g2 * (x * x - 1.5) + 1j * (d0 + d2 * (x * x - 1.5)) - 1j * det
         w = 1j * dd * x / b
         small = np.abs(w) < 1e-6
-        ratio = np.where(small, 1.0 + w * w / 3.0, np.arctanh(np.where(small, 0.5, w))
-                         / np.where(small, 0.5, w))
+        ratio = np.where(
+            small, 1.0 + w * w / 3.0, np.arctanh(np.where(small, 0.5, w)) / np.where(small, 0.5, w)
+        )
         return 4.0 / np.sqrt(np.pi) * x * x * np.exp(-x * x) * ratio / b
 
     a, _ = quad_vec(integrand, 0.0, 9.0, epsabs=0.0, epsrel=1e-12, limit=400)
@@ -73,7 +85,7 @@ def _integral_of_real_part(fun, nu0, scale, half_range, gamma0):
     is Gamma0), so each truncated wing holds Gamma0/(pi L) + O(L^-2), and the O(L^-2) parts
     of the two wings are odd and cancel: remainder 2 Gamma0/(pi L) with error O(L^-3).
     """
-    t, wt, _ = _sinh_nodes(scale, half_range, 0.01)   # nearest singularity: Im u ~ pi/2
+    t, wt, _ = _sinh_nodes(scale, half_range, 0.01)  # nearest singularity: Im u ~ pi/2
     inside = np.sum(wt * (fun(nu0 + t).real + fun(nu0 - t).real))
     return inside + 2.0 * gamma0 / (np.pi * half_range)
 
@@ -182,8 +194,7 @@ def _compare_to_hapi():
     worst_alg, worst_shipped, n_reliable, n_total = 0.0, 0.0, 0, 0
     for sg0, gd, g0, g2, d0, d2, nvc in _hapi_grid():
         sg = sg0 + d0 + _detunings(g0 + gd)
-        ours = qsdhcp(sg * CM, sg0 * CM, gd * CM, g0 * CM, g2 * CM, d0 * CM, d2 * CM,
-                      nvc * CM) * CM
+        ours = qsdhcp(sg * CM, sg0 * CM, gd * CM, g0 * CM, g2 * CM, d0 * CM, d2 * CM, nvc * CM) * CM
         peak = np.max(np.abs(ours))
         with _hapi_with_wofz():
             h_alg = _hapi(sg0, gd, g0, g2, d0, d2, nvc, sg)
@@ -193,8 +204,7 @@ def _compare_to_hapi():
         n_reliable += np.count_nonzero(reliable)
         n_total += len(sg)
         if np.any(reliable):
-            worst_shipped = max(worst_shipped,
-                                np.max(np.abs(ours - h_shipped)[reliable]) / peak)
+            worst_shipped = max(worst_shipped, np.max(np.abs(ours - h_shipped)[reliable]) / peak)
     return worst_alg, worst_shipped, n_reliable / n_total
 
 
@@ -221,11 +231,14 @@ def test_voigt_equals_scipy_voigt_profile(ratio):
     # 1e-10 of the peak.
     g0 = ratio * GD
     nu = NU0 + (g0 + GD) * np.linspace(-30.0, 30.0, 601)
-    det = nu - NU0                      # the detuning the profile actually sees
+    det = nu - NU0  # the detuning the profile actually sees
     ref = voigt_profile(det, GD / np.sqrt(2.0 * np.log(2.0)), g0)
     peak = ref.max()
-    for g in (voigt(nu, NU0, GD, g0), qsdhcp(nu, NU0, GD, g0),
-              profile("voigt", nu, NU0, GD, gamma0_hz=g0)):
+    for g in (
+        voigt(nu, NU0, GD, g0),
+        qsdhcp(nu, NU0, GD, g0),
+        profile("voigt", nu, NU0, GD, gamma0_hz=g0),
+    ):
         assert np.max(np.abs(g.real - ref)) < 1e-10 * peak
 
 
@@ -244,14 +257,17 @@ def test_gaussian_closed_form():
     g = gaussian(nu, NU0, GD)
     x = SQRT_LN2 * det / GD
     # real part: the textbook Doppler profile, exact to rounding
-    np.testing.assert_allclose(g.real, SQRT_LN2 / (np.sqrt(np.pi) * GD) * np.exp(-x * x),
-                               rtol=1e-13, atol=0)
+    np.testing.assert_allclose(
+        g.real, SQRT_LN2 / (np.sqrt(np.pi) * GD) * np.exp(-x * x), rtol=1e-13, atol=0
+    )
     # imaginary part: (2/pi) sqrt(ln2)/GammaD F(x), F Dawson's integral, checked against its
     # definition F(x) = int_0^x exp(t^2 - x^2) dt by quadrature (quad: ~1e-14 relative)
     for k in range(0, len(x), 40):
-        fx = quad(lambda t: np.exp(t * t - x[k] * x[k]), 0.0, x[k], epsabs=0, epsrel=1e-13)[0]
-        assert g.imag[k] == pytest.approx(2.0 * SQRT_LN2 / (np.pi * GD) * fx,
-                                          rel=1e-11, abs=1e-13 / GD)
+        xk = x[k]
+        fx = quad(lambda t, xk=xk: np.exp(t * t - xk * xk), 0.0, xk, epsabs=0, epsrel=1e-13)[0]
+        assert g.imag[k] == pytest.approx(
+            2.0 * SQRT_LN2 / (np.pi * GD) * fx, rel=1e-11, abs=1e-13 / GD
+        )
     assert g.imag[-1] > 0 > g.imag[0]
     # the general profile's Gamma0 -> 0 limit is this Gaussian (same w(x) on the real axis)
     peak = g.real.max()
@@ -264,11 +280,9 @@ def test_lorentzian_closed_form_and_limit():
     nu = NU0 + np.linspace(-2.0, 2.0, 401) * CM
     det = nu - NU0
     g = lorentzian(nu, NU0, g0, d0)
-    np.testing.assert_allclose(g.real, g0 / (np.pi * (g0 ** 2 + (det - d0) ** 2)), rtol=1e-14)
-    np.testing.assert_allclose(g.imag, (det - d0) / (np.pi * (g0 ** 2 + (det - d0) ** 2)),
-                               rtol=1e-14)
-    np.testing.assert_array_equal(
-        profile("lorentzian", nu, NU0, GD, gamma0_hz=g0, delta0_hz=d0), g)
+    np.testing.assert_allclose(g.real, g0 / (np.pi * (g0**2 + (det - d0) ** 2)), rtol=1e-14)
+    np.testing.assert_allclose(g.imag, (det - d0) / (np.pi * (g0**2 + (det - d0) ** 2)), rtol=1e-14)
+    np.testing.assert_array_equal(profile("lorentzian", nu, NU0, GD, gamma0_hz=g0, delta0_hz=d0), g)
     # qSDHCP with a vanishing Doppler width (GammaD/Gamma0 = 1e-4) is the Lorentzian up to
     # the O((GammaD/Gamma0)^2) = 1e-8 Doppler correction: 1e-7 of the peak.
     gq = qsdhcp(nu, NU0, 1e-4 * g0, g0, 0.0, d0)
@@ -279,9 +293,19 @@ def test_sdvoigt_is_qsdhcp_without_velocity_changes():
     det = np.linspace(-20, 20, 401) * GD
     args = (NU0 + det, NU0, GD, 0.7 * GD, 0.1 * GD, 0.05 * GD, 0.01 * GD)
     assert np.array_equal(sdvoigt(*args), qsdhcp(*args, nu_vc_hz=0.0))
-    assert np.array_equal(profile("sdvp", NU0 + det, NU0, GD, gamma0_hz=0.7 * GD,
-                                  gamma2_hz=0.1 * GD, delta0_hz=0.05 * GD,
-                                  delta2_hz=0.01 * GD), sdvoigt(*args))
+    assert np.array_equal(
+        profile(
+            "sdvp",
+            NU0 + det,
+            NU0,
+            GD,
+            gamma0_hz=0.7 * GD,
+            gamma2_hz=0.1 * GD,
+            delta0_hz=0.05 * GD,
+            delta2_hz=0.01 * GD,
+        ),
+        sdvoigt(*args),
+    )
 
 
 @pytest.mark.parametrize("r0,rvc", [(1e-3, 0.1), (0.3, 0.5), (1.0, 3.0), (20.0, 10.0)])
@@ -301,12 +325,16 @@ def test_rautian_closed_form(r0, rvc):
     w = wofz(x + 1j * (y + zeta))
     ref = SQRT_LN2 / (np.sqrt(np.pi) * GD) * w / (1.0 - np.sqrt(np.pi) * zeta * w)
     peak = np.abs(ref).max()
-    assert np.max(np.abs(g - ref)) < 1e-13 * peak          # same algebra, rounding only
+    assert np.max(np.abs(g - ref)) < 1e-13 * peak  # same algebra, rounding only
     # the general profile at Gamma2 = Delta2 = 0 (its kappa = 0 path)
     gq = qsdhcp(nu, NU0, GD, g0, 0.0, d0, 0.0, nvc)
     assert np.max(np.abs(gq - ref)) < 1e-13 * peak
-    assert np.max(np.abs(profile("rautian", nu, NU0, GD, gamma0_hz=g0, delta0_hz=d0,
-                                 nu_vc_hz=nvc) - ref)) < 1e-13 * peak
+    assert (
+        np.max(
+            np.abs(profile("rautian", nu, NU0, GD, gamma0_hz=g0, delta0_hz=d0, nu_vc_hz=nvc) - ref)
+        )
+        < 1e-13 * peak
+    )
     # and the kinetic definition by quadrature (independent of wofz): quadrature tolerance
     # 1e-12 relative, so 1e-9 of the peak.
     sub = det[::40]
@@ -319,21 +347,24 @@ def test_rautian_dicke_limit():
     # Lorentzian of HWHM GammaD^2 / (2 ln2 nu_VC) (diffusion limit). With nu_VC = 1e3 GammaD
     # the next correction is O((GammaD/nu_VC)^2) ~ 1e-6 relative; allow 1e-5.
     nvc = 1e3 * GD
-    hw = GD ** 2 / (2.0 * np.log(2.0) * nvc)
+    hw = GD**2 / (2.0 * np.log(2.0) * nvc)
     det = np.linspace(-5, 5, 101) * hw
     g = hard_collision(det, 0.0, GD, 0.0, 0.0, nvc)
     ref = (1.0 / np.pi) / (hw - 1j * det)
     assert np.max(np.abs(g - ref)) < 1e-5 * ref.real.max()
 
 
-@pytest.mark.parametrize("r0,r2,rd2,rvc", [
-    (0.5, 0.1, 0.0, 0.0),        # speed-dependent Voigt
-    (0.5, 0.3, 0.05, 0.5),       # full qSDHC with speed-dependent shift
-    (2.0, 0.6, -0.2, 2.0),       # Gamma2 close to the 2/3 Gamma0 bound, large Delta2
-    (0.05, 0.02, 0.01, 0.2),     # Doppler dominated
-    (1e3, 0.6, 0.0, 1.0),        # collision dominated
-    (1e5, 0.3, 0.05, 0.5),       # Doppler negligible: the |X| >> |Y| branch at the core
-])
+@pytest.mark.parametrize(
+    "r0,r2,rd2,rvc",
+    [
+        (0.5, 0.1, 0.0, 0.0),  # speed-dependent Voigt
+        (0.5, 0.3, 0.05, 0.5),  # full qSDHC with speed-dependent shift
+        (2.0, 0.6, -0.2, 2.0),  # Gamma2 close to the 2/3 Gamma0 bound, large Delta2
+        (0.05, 0.02, 0.01, 0.2),  # Doppler dominated
+        (1e3, 0.6, 0.0, 1.0),  # collision dominated
+        (1e5, 0.3, 0.05, 0.5),  # Doppler negligible: the |X| >> |Y| branch at the core
+    ],
+)
 def test_qsdhcp_against_kinetic_definition(r0, r2, rd2, rvc):
     # The two-Faddeeva formula must reproduce the Maxwell average it is derived from. The
     # quadrature is good to ~1e-12 relative, so 1e-9 of the peak leaves margin and still
@@ -356,10 +387,26 @@ NORM_CASES = [
     ("voigt", {"gamma0_hz": 30.0 * GD, "delta0_hz": 2.0 * GD}),
     ("sdvp", {"gamma0_hz": 0.5 * GD, "gamma2_hz": 0.15 * GD, "delta2_hz": 0.02 * GD}),
     ("rautian", {"gamma0_hz": 0.2 * GD, "nu_vc_hz": 2.0 * GD}),
-    ("qsdhcp", {"gamma0_hz": 0.5 * GD, "gamma2_hz": 0.1 * GD, "delta0_hz": 0.1 * GD,
-                "delta2_hz": 0.02 * GD, "nu_vc_hz": 0.5 * GD}),
-    ("qsdhcp", {"gamma0_hz": 100.0 * GD, "gamma2_hz": 30.0 * GD, "delta0_hz": 5.0 * GD,
-                "delta2_hz": 1.0 * GD, "nu_vc_hz": 50.0 * GD}),
+    (
+        "qsdhcp",
+        {
+            "gamma0_hz": 0.5 * GD,
+            "gamma2_hz": 0.1 * GD,
+            "delta0_hz": 0.1 * GD,
+            "delta2_hz": 0.02 * GD,
+            "nu_vc_hz": 0.5 * GD,
+        },
+    ),
+    (
+        "qsdhcp",
+        {
+            "gamma0_hz": 100.0 * GD,
+            "gamma2_hz": 30.0 * GD,
+            "delta0_hz": 5.0 * GD,
+            "delta2_hz": 1.0 * GD,
+            "nu_vc_hz": 50.0 * GD,
+        },
+    ),
 ]
 
 
@@ -371,7 +418,7 @@ def test_real_part_is_normalised(name, shape):
     g0 = shape.get("gamma0_hz", 0.0)
     width = GD + g0 + shape.get("nu_vc_hz", 0.0)
     scale = 0.05 * min(GD, g0) if g0 else 0.05 * GD
-    fun = lambda nu: profile(name, nu, NU0, GD, **shape)   # noqa: E731
+    fun = lambda nu: profile(name, nu, NU0, GD, **shape)  # noqa: E731
     total = _integral_of_real_part(fun, NU0, scale, 1e4 * width, g0)
     assert abs(total - 1.0) < 1e-6
     if 2.0 * g0 / (np.pi * 1e4 * width) > 1e-5:
@@ -393,10 +440,12 @@ def test_kramers_kronig(name, shape):
     g0 = shape.get("gamma0_hz", 0.0)
     width = GD + g0 + shape.get("nu_vc_hz", 0.0)
     scale = 0.05 * min(GD, g0) if g0 else 0.05 * GD
-    fun = lambda nu: profile(name, nu, NU0, GD, **shape)   # noqa: E731
+    fun = lambda nu: profile(name, nu, NU0, GD, **shape)  # noqa: E731
     peak = np.abs(fun(NU0 + np.linspace(-3, 3, 601) * width)).max()
-    for x, h in ((np.linspace(-8.0, 8.0, 13) * width + 0.1234 * width, 0.002),
-                 (np.array([-30.0, 30.0]) * width, 0.0005)):
+    for x, h in (
+        (np.linspace(-8.0, 8.0, 13) * width + 0.1234 * width, 0.002),
+        (np.array([-30.0, 30.0]) * width, 0.0005),
+    ):
         hil = _hilbert_of_real_part(fun, NU0, x, scale, 1e6 * width, h)
         assert np.max(np.abs(hil - fun(NU0 + x).imag)) < 1e-8 * peak
 
@@ -426,8 +475,10 @@ def test_gamma2_derivative_is_smooth_near_zero():
     det = np.linspace(-5, 5, 101) * GD
     g0 = 0.5 * GD
     base = qsdhcp(NU0 + det, NU0, GD, g0, 0.0, 0.0, 0.0, 0.2 * g0)
-    slopes = [(qsdhcp(NU0 + det, NU0, GD, g0, h, 0.0, 0.0, 0.2 * g0) - base) / h
-              for h in (1e-4 * GD, 1e-6 * GD, 1e-8 * GD)]
+    slopes = [
+        (qsdhcp(NU0 + det, NU0, GD, g0, h, 0.0, 0.0, 0.2 * g0) - base) / h
+        for h in (1e-4 * GD, 1e-6 * GD, 1e-8 * GD)
+    ]
     ref = np.abs(slopes[1]).max()
     assert np.max(np.abs(slopes[0] - slopes[1])) < 1e-3 * ref
     assert np.max(np.abs(slopes[2] - slopes[1])) < 1e-5 * ref
@@ -470,8 +521,7 @@ def test_far_wing_asymptote():
         d = np.array([1e4, 1e5, 1e6, 1e7]) * width
         for sign in (1.0, -1.0):
             g = qsdhcp(NU0 + sign * d, NU0, GD, g0, r2 * g0, 0.0, 0.0, rvc * g0)
-            np.testing.assert_allclose(g.real * np.pi * d ** 2 / g0, 1.0,
-                                       rtol=30.0 * width / d[0])
+            np.testing.assert_allclose(g.real * np.pi * d**2 / g0, 1.0, rtol=30.0 * width / d[0])
             np.testing.assert_allclose(g.imag * np.pi * d * sign, 1.0, rtol=30.0 * width / d[0])
 
 
@@ -504,48 +554,65 @@ finite = dict(allow_nan=False, allow_infinity=False)
 
 
 @settings(max_examples=60, deadline=None)
-@given(log_r0=st.floats(-4, 3, **finite), f2=st.floats(0, 2.0 / 3.0, **finite),
-       fd2=st.floats(-1, 1, **finite), log_rvc=st.floats(-4, 3, **finite),
-       use_vc=st.booleans(), log_det=st.floats(-3, 4, **finite), sign=st.sampled_from([-1, 1]))
+@given(
+    log_r0=st.floats(-4, 3, **finite),
+    f2=st.floats(0, 2.0 / 3.0, **finite),
+    fd2=st.floats(-1, 1, **finite),
+    log_rvc=st.floats(-4, 3, **finite),
+    use_vc=st.booleans(),
+    log_det=st.floats(-3, 4, **finite),
+    sign=st.sampled_from([-1, 1]),
+)
 def test_real_part_nonnegative(log_r0, f2, fd2, log_rvc, use_vc, log_det, sign):
     # Re g = <psi, G psi> with G = Gamma(v) + nu_VC (1 - P) >= 0 in the Maxwell-weighted
     # space (P the projector on the Maxwellian), so the qSDHC (eta = 0) real part is
     # non-negative for Gamma(v) >= 0 at all speeds, out to any detuning. (The published
     # negative far wings belong to eta != 0 / partially correlated models.) Voigt and sdvp
     # are special cases. Checked against rounding: >= -1e-15 of the local |g|.
-    g0 = 10.0 ** log_r0 * GD
-    nvc = 10.0 ** log_rvc * g0 if use_vc else 0.0
-    d = sign * 10.0 ** log_det * (GD + g0 + nvc)
+    g0 = 10.0**log_r0 * GD
+    nvc = 10.0**log_rvc * g0 if use_vc else 0.0
+    d = sign * 10.0**log_det * (GD + g0 + nvc)
     nu = NU0 + d * np.array([0.5, 1.0, 2.0])
-    for g in (qsdhcp(nu, NU0, GD, g0, f2 * g0, 0.1 * g0, fd2 * g0, nvc),
-              sdvoigt(nu, NU0, GD, g0, f2 * g0, 0.1 * g0, fd2 * g0),
-              voigt(nu, NU0, GD, g0, 0.1 * g0)):
+    for g in (
+        qsdhcp(nu, NU0, GD, g0, f2 * g0, 0.1 * g0, fd2 * g0, nvc),
+        sdvoigt(nu, NU0, GD, g0, f2 * g0, 0.1 * g0, fd2 * g0),
+        voigt(nu, NU0, GD, g0, 0.1 * g0),
+    ):
         assert np.all(np.isfinite(g))
         assert np.all(g.real >= -1e-15 * np.abs(g))
 
 
 @settings(max_examples=25, deadline=None)
-@given(log_r0=st.floats(-3, 2, **finite), f2=st.floats(0, 0.6, **finite),
-       fd2=st.floats(-0.2, 0.2, **finite), rvc=st.floats(0, 5, **finite))
+@given(
+    log_r0=st.floats(-3, 2, **finite),
+    f2=st.floats(0, 0.6, **finite),
+    fd2=st.floats(-0.2, 0.2, **finite),
+    rvc=st.floats(0, 5, **finite),
+)
 def test_normalisation_property(log_r0, f2, fd2, rvc):
     # Same integration as test_real_part_is_normalised (good to ~1e-10), random regimes.
-    g0 = 10.0 ** log_r0 * GD
-    shape = dict(gamma0_hz=g0, gamma2_hz=f2 * g0, delta0_hz=0.1 * g0, delta2_hz=fd2 * g0,
-                 nu_vc_hz=rvc * g0)
-    fun = lambda nu: qsdhcp(nu, NU0, GD, **shape)   # noqa: E731
+    g0 = 10.0**log_r0 * GD
+    shape = dict(
+        gamma0_hz=g0, gamma2_hz=f2 * g0, delta0_hz=0.1 * g0, delta2_hz=fd2 * g0, nu_vc_hz=rvc * g0
+    )
+    fun = lambda nu: qsdhcp(nu, NU0, GD, **shape)  # noqa: E731
     width = GD + g0 + rvc * g0
     total = _integral_of_real_part(fun, NU0, 0.05 * min(GD, g0), 1e4 * width, g0)
     assert abs(total - 1.0) < 1e-6
 
 
 @settings(max_examples=60, deadline=None)
-@given(log_r0=st.floats(-4, 3, **finite), f2=st.floats(0, 2.0 / 3.0, **finite),
-       rvc=st.floats(0, 10, **finite), log_det=st.floats(-3, 4, **finite))
+@given(
+    log_r0=st.floats(-4, 3, **finite),
+    f2=st.floats(0, 2.0 / 3.0, **finite),
+    rvc=st.floats(0, 10, **finite),
+    log_det=st.floats(-3, 4, **finite),
+)
 def test_symmetry_without_shifts(log_r0, f2, rvc, log_det):
     # With Delta0 = Delta2 = 0 the profile is symmetric: Re even, Im odd about nu0. The two
     # sides are computed from different arguments, so allow rounding: 1e-12 of |g|.
-    g0 = 10.0 ** log_r0 * GD
-    d = 10.0 ** log_det * (GD + g0)
+    g0 = 10.0**log_r0 * GD
+    d = 10.0**log_det * (GD + g0)
     # nu0 = 0 so that +d and -d are exact mirror images (nu0 + d would round)
     up = qsdhcp(d, 0.0, GD, g0, f2 * g0, 0.0, 0.0, rvc * g0)
     down = qsdhcp(-d, 0.0, GD, g0, f2 * g0, 0.0, 0.0, rvc * g0)
@@ -562,7 +629,7 @@ def test_profiles_table_and_validation():
     assert "nu_vc_hz" not in PROFILES["sdvp"].parameters
     assert "gamma2_hz" not in PROFILES["rautian"].parameters
     with pytest.raises(AttributeError):
-        PROFILES["voigt"].parameters = ()                      # frozen dataclass
+        PROFILES["voigt"].parameters = ()  # frozen dataclass
     nu = NU0 + np.linspace(-1, 1, 5) * GD
     with pytest.raises(ValueError, match="gamma2_hz"):
         profile("voigt", nu, NU0, GD, gamma0_hz=GD, gamma2_hz=0.1 * GD)
@@ -581,8 +648,13 @@ def test_every_profile_is_its_qsdhcp_limit():
     # Each named profile equals the general qSDHCP with the unused parameters at zero,
     # to rounding (1e-13 of the peak). The Lorentzian is compared at GammaD -> 0 (1e-7).
     det = np.linspace(-20, 20, 161) * GD
-    full = dict(gamma0_hz=0.4 * GD, gamma2_hz=0.1 * GD, delta0_hz=0.03 * GD,
-                delta2_hz=0.01 * GD, nu_vc_hz=0.2 * GD)
+    full = dict(
+        gamma0_hz=0.4 * GD,
+        gamma2_hz=0.1 * GD,
+        delta0_hz=0.03 * GD,
+        delta2_hz=0.01 * GD,
+        nu_vc_hz=0.2 * GD,
+    )
     for name, spec in PROFILES.items():
         used = {k: v for k, v in full.items() if k in spec.parameters}
         gd = GD if spec.uses_doppler else 1e-5 * full["gamma0_hz"]
@@ -608,7 +680,8 @@ def test_broadcasting_and_shapes():
     assert g.shape == (7, 3) and g.dtype == complex
     for j in range(3):
         np.testing.assert_array_equal(
-            g[:, j], qsdhcp(nu[:, 0], NU0, GD, g0[j], 0.1 * g0[j], 0.0, 0.0, 0.2 * g0[j]))
+            g[:, j], qsdhcp(nu[:, 0], NU0, GD, g0[j], 0.1 * g0[j], 0.0, 0.0, 0.2 * g0[j])
+        )
     assert np.ndim(qsdhcp(NU0, NU0, GD, GD)) == 0
 
 
@@ -622,6 +695,7 @@ def _negative_width_weight(r2, rvc):
     """Maxwell weight P(x > x*) = erfc(x*) + (2/sqrt(pi)) x* exp(-x*^2) of the speed classes
     whose width Gamma(v) + nu_VC = Gamma0 (1 + rvc + r2 (x^2 - 3/2)) is negative (r2 < 0)."""
     from scipy.special import erfc
+
     if r2 >= 0:
         return 0.0
     xs = np.sqrt(1.5 + (1.0 + rvc) / -r2)
@@ -693,4 +767,6 @@ def test_continuation_is_nan_off_its_domain():
     # Gamma2 < 0 is not covered (w(iZ-) overflows far out): NaN rather than a wrong number.
     d = np.concatenate([-np.logspace(-2, 8, 50), np.logspace(-2, 8, 50)]) * GD
     assert np.all(np.isfinite(qsdhcp(NU0 + d, NU0, GD, G0C, -0.3 * G0C, 0.1 * G0C, 0.0, 0.5 * G0C)))
-    assert np.all(np.isnan(qsdhcp(NU0 + d, NU0, GD, G0C, -0.3 * G0C, 0.1 * G0C, 0.2 * G0C, 0.5 * G0C)))
+    assert np.all(
+        np.isnan(qsdhcp(NU0 + d, NU0, GD, G0C, -0.3 * G0C, 0.1 * G0C, 0.2 * G0C, 0.5 * G0C))
+    )

@@ -1,11 +1,18 @@
 """H(f) (Eq. 2): symmetry, causality, agreement with the exact rational chain, beat-note fit."""
-import numpy as np
-import pytest
+
 from dataclasses import replace
 
-from bayes_tfcrds.physics.detection_chain import chain_from_tf
-from bayes_tfcrds.physics.transfer_function import TFParams, impulse_response, transfer_function, settling_times
+import numpy as np
+import pytest
+
 from bayes_tfcrds.fit.beat_note import fit_beat_note
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
+from bayes_tfcrds.physics.transfer_function import (
+    TFParams,
+    impulse_response,
+    settling_times,
+    transfer_function,
+)
 
 LETTER_LIKE = TFParams(f_c_hz=6.0e4, a_r=15.0, f_r_hz=6.0e6, gamma_r=0.7, n_r=2.0, variant="causal")
 
@@ -17,7 +24,8 @@ def test_negative_frequencies_are_conjugate_and_impulse_response_is_real():
         h = transfer_function(f, p)
         np.testing.assert_allclose(h[::-1], np.conj(h), rtol=0, atol=1e-15)
         from scipy import fft
-        n = (1 << 14) + 1     # odd: no unpaired Nyquist bin
+
+        n = (1 << 14) + 1  # odd: no unpaired Nyquist bin
         hf = transfer_function(fft.fftfreq(n, 1e-8), p)
         h_t = fft.ifft(hf)
         # real to rounding: imaginary part at the level of double precision of the peak
@@ -38,7 +46,9 @@ def test_rational_chain_has_the_same_frequency_response():
     # the simulator's exact chain and Eq. 2 are two independent codings of one H
     f = np.logspace(1, 8, 400)
     chain = chain_from_tf(LETTER_LIKE)
-    np.testing.assert_allclose(chain.frequency_response(f), transfer_function(f, LETTER_LIKE), rtol=1e-12)
+    np.testing.assert_allclose(
+        chain.frequency_response(f), transfer_function(f, LETTER_LIKE), rtol=1e-12
+    )
 
 
 def _smoothed_pre_response(p, sigma=5e-9):
@@ -79,7 +89,7 @@ def test_settling_times_follow_the_slowest_pole():
     # the slow pole carries 1/(1 + A_r) of the gain: |1 - a(t)| ~ exp(-t/tau)/16 < 1e-7
     expect = tau_slow * np.log(1 / (1e-7 * (1 + LETTER_LIKE.a_r)))
     assert hist == pytest.approx(expect, rel=0.05)
-    assert lead < 0.5e-6                 # causal: only the smoothing's spread
+    assert lead < 0.5e-6  # causal: only the smoothing's spread
 
 
 class _BeatNote:
@@ -110,7 +120,9 @@ def test_beat_note_fit_without_start_finds_global_minimum():
     rng = np.random.default_rng(3)
     f = np.logspace(3, np.log10(4e7), 60)
     u = 2e-3 * np.ones_like(f)
-    meas = _BeatNote(f, np.abs(transfer_function(f, LETTER_LIKE)) + u * rng.standard_normal(f.size), u)
+    meas = _BeatNote(
+        f, np.abs(transfer_function(f, LETTER_LIKE)) + u * rng.standard_normal(f.size), u
+    )
     fit = fit_beat_note(meas, free=("f_c_hz", "a_r", "f_r_hz", "gamma_r"))
     assert fit.chi2_red < 1.5
     for name, se in fit.stderr.items():
@@ -122,20 +134,25 @@ def test_beat_note_phase_ambiguity_is_resolved_by_the_ring_downs():
     # |H| nearly repeats under A_r -> -A_r/(1 + 2 A_r): on campaign 143 of the coverage study the
     # beat note alone prefers the mirror mode (A_r ~ -0.49 for a true 22), which biased A by 13 %.
     # The ring-down fits must pick the true mode.
+    from pathlib import Path
+
     import numpy as np
+
+    from bayes_tfcrds.fit.beat_note import fit_beat_note
     from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit
     from bayes_tfcrds.studies.coverage import draw_truth, settings_of, simulate_draw
     from bayes_tfcrds.studies.spec import load_study
-    from bayes_tfcrds.fit.beat_note import fit_beat_note
-    from pathlib import Path
-    settings = settings_of(load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml"))
+
+    settings = settings_of(
+        load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
+    )
     ss = np.random.SeedSequence(settings.seed, spawn_key=(143,))
     g_draw, g_sim, _ = (np.random.default_rng(c) for c in ss.spawn(3))
     draw = draw_truth(g_draw, settings.presets, settings.dist)
     bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
     cfg = next(iter(bundle.configs.values()))
     beat_only = fit_beat_note(cfg.transfer_function, free=BEAT_FREE)
-    assert beat_only.params.a_r < 0 < draw.tf.a_r          # the ambiguity is real on this campaign
+    assert beat_only.params.a_r < 0 < draw.tf.a_r  # the ambiguity is real on this campaign
     chosen = beat_note_fit(cfg, free=BEAT_FREE)
     assert chosen.params.a_r == pytest.approx(draw.tf.a_r, rel=0.1)
     assert chosen.params.f_c_hz == pytest.approx(draw.tf.f_c_hz, rel=0.1)

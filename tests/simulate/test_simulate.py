@@ -1,4 +1,5 @@
-"""Simulator: presets reproduce the letter; each effect does what its docstring says; determinism."""
+"""Simulator: presets reproduce the letter; each effect does what it says; determinism."""
+
 import hashlib
 from dataclasses import replace
 
@@ -25,8 +26,10 @@ def letter_d2_d4(tmp_path_factory):
     return path
 
 
-LETTER = {"D2": {"tau_base": 0.04, "tau_centre": 2.4, "A8": -0.7},
-          "D4": {"tau_base": 0.6, "tau_centre": 16.0, "A8": -8.0}}
+LETTER = {
+    "D2": {"tau_base": 0.04, "tau_centre": 2.4, "A8": -0.7},
+    "D4": {"tau_base": 0.6, "tau_centre": 16.0, "A8": -8.0},
+}
 
 
 @pytest.mark.parametrize("label", ["D2", "D4"])
@@ -48,8 +51,9 @@ def test_presets_reproduce_the_letter_crds_biases(letter_d2_d4, label):
     assert abs(res["ratio"]["value"] - 1 - got["A8"] / 100) < 4 * res["ratio"]["u"]
     for key, letter in LETTER[label].items():
         # the issue's acceptance band: within +/-30 % of the letter's value
-        assert 0.7 * abs(letter) <= abs(got[key]) <= 1.3 * abs(letter) and np.sign(got[key]) == np.sign(letter), \
-            (key, got[key], letter)
+        assert 0.7 * abs(letter) <= abs(got[key]) <= 1.3 * abs(letter) and np.sign(
+            got[key]
+        ) == np.sign(letter), (key, got[key], letter)
 
 
 def test_shape_bounds_matter_only_where_the_model_is_wrong(letter_d2_d4):
@@ -62,11 +66,13 @@ def test_shape_bounds_matter_only_where_the_model_is_wrong(letter_d2_d4):
     held = analyse_line(bundle, cfg, method="crds", t_cut_s=8e-6, physical_bounds=True).to_dict()
     assert "nu_vc_hz" in free["unphysical_shape"] and free["shape_at_bound"] == []
     assert "nu_vc_hz" in held["shape_at_bound"] and held["unphysical_shape"] == []
-    assert held["parameters"]["nu_vc_hz"]["u"] == 0.0       # held, not fitted
+    assert held["parameters"]["nu_vc_hz"]["u"] == 0.0  # held, not fitted
     # the letter's -8 % against the free estimator's ~-12 % (README, presets)
     assert abs(held["ratio"]["value"] - 1) < abs(free["ratio"]["value"] - 1) - 0.02
     tf_free = analyse_line(bundle, cfg, method="tf-crds", t_cut_s=4e-6).to_dict()
-    tf_held = analyse_line(bundle, cfg, method="tf-crds", t_cut_s=4e-6, physical_bounds=True).to_dict()
+    tf_held = analyse_line(
+        bundle, cfg, method="tf-crds", t_cut_s=4e-6, physical_bounds=True
+    ).to_dict()
     assert tf_free["unphysical_shape"] == [] and tf_held["shape_at_bound"] == []
     # same optimum from the same start; least_squares stops within its default tolerances
     assert tf_held["ratio"]["value"] == pytest.approx(tf_free["ratio"]["value"], rel=1e-6)
@@ -75,8 +81,12 @@ def test_shape_bounds_matter_only_where_the_model_is_wrong(letter_d2_d4):
 def test_every_simulated_bundle_validates_and_is_deterministic(tmp_path):
     hashes = []
     for i in range(2):
-        b, t = simulate_campaign(["letter-D1", "letter-D3"], np.random.default_rng(11), TINY,
-                                 {"etalon": {}, "mode_beating": {}})
+        b, t = simulate_campaign(
+            ["letter-D1", "letter-D3"],
+            np.random.default_rng(11),
+            TINY,
+            {"etalon": {}, "mode_beating": {}},
+        )
         path = tmp_path / f"x{i}.h5"
         save_bundle(b, path, truth=t)
         _, errors, _ = validate_file(path)
@@ -84,12 +94,16 @@ def test_every_simulated_bundle_validates_and_is_deterministic(tmp_path):
         hashes.append(hashlib.sha256(path.read_bytes()).hexdigest())
     assert hashes[0] == hashes[1]
     b2, _ = simulate_campaign(["letter-D1"], np.random.default_rng(12), TINY)
-    assert not np.array_equal(b2.configs["D1"].ringdowns.signal_v, b.configs["D1"].ringdowns.signal_v)
+    assert not np.array_equal(
+        b2.configs["D1"].ringdowns.signal_v, b.configs["D1"].ringdowns.signal_v
+    )
 
 
 def test_parse_effect():
-    assert parse_effect("static_nonlinearity:beta=-3e-3,kind=power") == \
-        ("static_nonlinearity", {"beta": -3e-3, "kind": "power"})
+    assert parse_effect("static_nonlinearity:beta=-3e-3,kind=power") == (
+        "static_nonlinearity",
+        {"beta": -3e-3, "kind": "power"},
+    )
     with pytest.raises(ValueError, match="unknown effect"):
         parse_effect("nonsense")
     with pytest.raises(ValueError, match="has no parameter"):
@@ -104,9 +118,16 @@ BASE = replace(Campaign(), n_points=21, n_samples=4096, n_avg=4)
 
 
 def _pair(effect, params=None):
-    off = simulate_campaign(["letter-D2"], np.random.default_rng(3), BASE, {}, line_effects_default=False)
-    on = simulate_campaign(["letter-D2"], np.random.default_rng(3), BASE, {effect: params or {}},
-                           line_effects_default=False)
+    off = simulate_campaign(
+        ["letter-D2"], np.random.default_rng(3), BASE, {}, line_effects_default=False
+    )
+    on = simulate_campaign(
+        ["letter-D2"],
+        np.random.default_rng(3),
+        BASE,
+        {effect: params or {}},
+        line_effects_default=False,
+    )
     return off, on
 
 
@@ -115,7 +136,7 @@ def _t():
 
 
 LSB = 2.0 / 2**14
-QUANT_TOL = 4 * LSB                      # re-quantisation of two averaged records
+QUANT_TOL = 4 * LSB  # re-quantisation of two averaged records
 
 
 def _diff(off, on):
@@ -128,7 +149,7 @@ def test_effect_transfer_function_lengthens_apparent_decay():
     f_on = fit_ringdowns(on[0].configs["D2"].ringdowns, [4e-6], "crds")
     tau = off[1]["configs"]["D2"]["tau_s"]
     centre = np.argmin(tau)
-    assert f_on.tau_s[centre, 0] / tau[centre] - 1 > 0.01          # the slow tail: +2.4 % (D2)
+    assert f_on.tau_s[centre, 0] / tau[centre] - 1 > 0.01  # the slow tail: +2.4 % (D2)
     assert abs(f_off.tau_s[centre, 0] / tau[centre] - 1) < 2e-3
 
 
@@ -141,28 +162,34 @@ def test_effect_static_nonlinearity_compresses_large_signals():
     np.testing.assert_allclose(d[big], -5e-3 * v[big] ** 2, atol=QUANT_TOL + 2e-3 * 5e-3)
     f_off = fit_ringdowns(off[0].configs["D2"].ringdowns, [2e-6], "crds").tau_s
     f_on = fit_ringdowns(on[0].configs["D2"].ringdowns, [2e-6], "crds").tau_s
-    assert np.all(f_on > f_off)                                      # compression slows the decay
+    assert np.all(f_on > f_off)  # compression slows the decay
 
 
 def test_effect_extinction_tail_adds_the_predicted_second_exponential():
-    eps, tx = 5e-2, 10e-6              # large enough to resolve the shape beyond re-quantisation
+    eps, tx = 5e-2, 10e-6  # large enough to resolve the shape beyond re-quantisation
     off, on = _pair("extinction_tail", {"fraction": eps, "tau_s": tx})
     t = _t()
     tau = off[1]["configs"]["D2"]["tau_s"][:, None]
-    expect = BASE.amplitude_v * eps * tx / (tx - tau) * (np.exp(-np.clip(t, 0, None) / tx) - np.exp(-np.clip(t, 0, None) / tau))
+    expect = (
+        BASE.amplitude_v
+        * eps
+        * tx
+        / (tx - tau)
+        * (np.exp(-np.clip(t, 0, None) / tx) - np.exp(-np.clip(t, 0, None) / tau))
+    )
     expect = np.where(t < 0, 0.0, expect)
     assert np.max(np.abs(_diff(off, on) - expect)) < QUANT_TOL
-    assert np.max(np.abs(expect)) > 5 * QUANT_TOL         # the comparison discriminates
+    assert np.max(np.abs(expect)) > 5 * QUANT_TOL  # the comparison discriminates
 
 
 def test_effect_second_mode_adds_a_weak_faster_decay():
-    a, r = 5e-2, 0.7                   # large enough to resolve the shape beyond re-quantisation
+    a, r = 5e-2, 0.7  # large enough to resolve the shape beyond re-quantisation
     off, on = _pair("second_mode", {"fraction": a, "tau_ratio": r})
     t = np.clip(_t(), 0, None)
     tau = off[1]["configs"]["D2"]["tau_s"][:, None]
     expect = BASE.amplitude_v * a * (np.exp(-t / (r * tau)) - np.exp(-t / tau))
     assert np.max(np.abs(_diff(off, on) - expect)) < QUANT_TOL
-    assert np.max(np.abs(expect)) > 5 * QUANT_TOL         # the comparison discriminates
+    assert np.max(np.abs(expect)) > 5 * QUANT_TOL  # the comparison discriminates
 
 
 def test_effect_baseline_drift_is_linear_in_time():
@@ -180,7 +207,7 @@ def test_effect_mode_beating_is_a_decaying_sinusoid_at_the_beat_frequency():
     spec = np.abs(np.fft.rfft(d[sel] - d[sel].mean()))
     f = np.fft.rfftfreq(sel.sum(), BASE.dt_s)
     assert abs(f[np.argmax(spec)] - 2e6) < 2 * (f[1] - f[0])
-    assert np.max(np.abs(d[t < 0])) < QUANT_TOL                     # starts at extinction
+    assert np.max(np.abs(d[t < 0])) < QUANT_TOL  # starts at extinction
 
 
 def _alpha(sim):
@@ -192,7 +219,7 @@ def test_effect_speed_dependence_narrows_the_core():
     a_off, nu = _alpha(off)
     a_on, _ = _alpha(on)
     c = np.argmax(a_off)
-    assert a_on[c] > a_off[c]                                        # higher, narrower core
+    assert a_on[c] > a_off[c]  # higher, narrower core
     assert on[1]["line"]["gamma2_hz"] > 0 and off[1]["line"]["gamma2_hz"] == 0
 
 
@@ -210,7 +237,9 @@ def test_effect_etalon_adds_a_sinusoidal_baseline():
     a_off, nu = _alpha(off)
     a_on, _ = _alpha(on)
     nu0 = off[1]["line"]["nu0_hz"]
-    np.testing.assert_allclose(a_on - a_off, amp * np.sin(2 * np.pi * (nu - nu0) / period + phase), atol=1e-15)
+    np.testing.assert_allclose(
+        a_on - a_off, amp * np.sin(2 * np.pi * (nu - nu0) / period + phase), atol=1e-15
+    )
 
 
 def test_effect_neighbour_line_adds_a_weak_line_at_its_offset():

@@ -1,8 +1,10 @@
-"""Simulation-based calibration (issue #9): the budget's intervals cover the truth as often as they claim.
+"""Simulation-based calibration (issue #9): the budget's intervals cover the truth as often as they
+claim.
 
 The reduced study: 40 campaigns at small size, truths drawn per campaign, Laplace posterior,
 run through the ``coverage`` study kind exactly as ``bayes-tfcrds study`` runs it.
 """
+
 import json
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
@@ -10,9 +12,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bayes_tfcrds.studies import coverage as cs
 from bayes_tfcrds.inference.posteriors import H_PRIOR
 from bayes_tfcrds.simulate.campaign import PRESETS, Campaign, simulate_campaign
+from bayes_tfcrds.studies import coverage as cs
 from bayes_tfcrds.studies.registry import run_study
 from bayes_tfcrds.studies.spec import load_study
 
@@ -62,12 +64,14 @@ def test_drawn_simulator_is_the_campaign_simulator():
 
 
 def test_truths_lie_inside_the_analysis_priors():
-    # flat priors: SBC then needs every truth inside their support (posterior.py bounds)
+    # flat priors: SBC then needs every truth inside their support (inference/posteriors.py bounds)
     rng = np.random.default_rng(0)
     d = cs.TruthDistribution()
     for _ in range(500):
         t = cs.draw_truth(rng, tuple(PRESETS), d)
-        assert 0 <= t.gamma2_ratio <= 2 / 3 and t.nu_vc_ratio >= 0 and t.intensity_cm_per_molecule > 0
+        assert (
+            0 <= t.gamma2_ratio <= 2 / 3 and t.nu_vc_ratio >= 0 and t.intensity_cm_per_molecule > 0
+        )
         for name in ("f_c_hz", "a_r", "f_r_hz", "gamma_r"):
             lo, hi = H_PRIOR[name]
             assert lo < getattr(t.tf, name) < hi
@@ -79,7 +83,8 @@ def test_coverage_and_ranks_within_binomial_limits(study_run):
     recs = numbers["records"]
     assert numbers["n_ok"] == N and not numbers["failed"]
     # each coverage within 3 binomial sd of nominal: for n = 40, sd = 3.4 % (95 %) and 7.4 % (68 %);
-    # 8 such checks at ~0.3 % false alarm each (normal approx.) keep the suite's false-fail rate ~2 %.
+    # 8 such checks at ~0.3 % false alarm each (normal approx.) keep the suite's false-fail rate ~2
+    # %.
     # Ranks: chi-square over 5 bins (8 expected per bin) at alpha = 1 %.
     for q in cs.QUANTITIES:
         s = cs.summarise(recs, q, bins=5)
@@ -93,10 +98,12 @@ def test_a_misstated_uncertainty_fails_the_check(study_run):
     _, _, numbers, _, _ = study_run
     recs = numbers["records"]
     for q in cs.QUANTITIES:
-        # u x 0.5: the 95 % interval becomes +/-0.98 sigma and covers ~67 %, far below 95 - 3 x 3.4 %
+        # u x 0.5: the 95 % interval becomes +/-0.98 sigma and covers ~67 %, far below 95 - 3 x 3.4
+        # %
         s = cs.summarise(recs, q, u_scale=0.5, bins=5)
         assert not cs.check(s)["coverage_95"], (q, s["coverage_95"])
-        # u x 2: over-stated; the 68 % interval becomes +/-1.99 sigma (covers ~95 %, above 68 + 3 x 7.4 %)
+        # u x 2: over-stated; the 68 % interval becomes +/-1.99 sigma (covers ~95 %, above 68 + 3 x
+        # 7.4 %)
         # and the ranks pile up in the middle bins: at least one of the checks must fail
         assert not all(cs.check(cs.summarise(recs, q, u_scale=2.0, bins=5)).values()), q
 
@@ -112,7 +119,9 @@ def test_report_and_numbers(study_run):
     assert a["n"] == N and len(a["rank_counts"]) == 5 and sum(a["rank_counts"]) == N
 
 
-def test_finished_campaigns_are_reused_and_workers_do_not_change_results(study_run, tmp_path, monkeypatch):
+def test_finished_campaigns_are_reused_and_workers_do_not_change_results(
+    study_run, tmp_path, monkeypatch
+):
     study, out, numbers, _, _ = study_run
     settings = cs.settings_of(study)
     by_index = {r["index"]: r for r in numbers["records"]}
@@ -120,7 +129,9 @@ def test_finished_campaigns_are_reused_and_workers_do_not_change_results(study_r
     with ProcessPoolExecutor(max_workers=2) as pool:
         recs = cs.run_campaigns(settings, [0, 1], tmp_path, pool=pool)
     for r in recs:
-        assert {k: r[k] for k in ("draw", "quantities")} == {k: by_index[r["index"]][k] for k in ("draw", "quantities")}
+        assert {k: r[k] for k in ("draw", "quantities")} == {
+            k: by_index[r["index"]][k] for k in ("draw", "quantities")
+        }
 
     def boom(*a, **k):
         raise AssertionError("a finished campaign was run again")
@@ -128,12 +139,14 @@ def test_finished_campaigns_are_reused_and_workers_do_not_change_results(study_r
     monkeypatch.setattr(cs, "run_campaign", boom)
     again = cs.campaign_task((settings, 3, str(out / "campaigns")))
     assert again["quantities"] == by_index[3]["quantities"]
-    # other settings (a different seed): the stored record does not match and the campaign runs again
+    # other settings (a different seed): the stored record does not match and the campaign runs
+    # again
     with pytest.raises(AssertionError, match="run again"):
         cs.campaign_task((replace(settings, seed=12), 3, str(out / "campaigns")))
 
 
 def test_study_file_is_valid():
     from pathlib import Path
+
     s = load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
     assert s.kind == "coverage" and s.n_campaigns >= 200 and s.posterior == "laplace"

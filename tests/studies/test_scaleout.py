@@ -1,4 +1,5 @@
 """Scale-out: a study on a local Dask cluster gives the same numbers as the serial run."""
+
 import json
 
 import pytest
@@ -25,8 +26,16 @@ def test_study_on_a_local_dask_cluster_equals_the_serial_run(tmp_path):
     study = tmp_path / "s.toml"
     study.write_text(STUDY)
     run_study(study, tmp_path / "serial")
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                  silence_logs=40) as cluster, distributed.Client(cluster) as client:
+    with (
+        distributed.LocalCluster(
+            n_workers=2,
+            threads_per_worker=1,
+            processes=True,
+            dashboard_address=None,
+            silence_logs=40,
+        ) as cluster,
+        distributed.Client(cluster) as client,
+    ):
         # a raw Client is not a pool (emcee and the runner call pool.map and expect results);
         # its executor is
         run_study(study, tmp_path / "dask", pool=client.get_executor())

@@ -5,14 +5,15 @@ the line area with its statistical uncertainty (ring-down noise and H) and its n
 ``fixed_beat`` the beat-note measurement (hence the H posterior) is the same in every replica
 and only the ring-down noise changes: the scatter of A then checks the noise row alone.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.core.gum import Budget
 from bayes_tfcrds.core.constants import line_area_from_cm2
+from bayes_tfcrds.core.gum import Budget
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
 
@@ -39,26 +40,35 @@ class Replicas:
         return float(np.std(self.area, ddof=1) / np.mean(self.u_noise))
 
 
-def replicate(n: int, seed: int, preset: str = "letter-D2", campaign: Campaign = Campaign(),
-              options: BudgetOptions = BudgetOptions(posterior="laplace"), fixed_beat: bool = False,
-              progress: bool = False) -> Replicas:
+def replicate(
+    n: int,
+    seed: int,
+    preset: str = "letter-D2",
+    campaign: Campaign = Campaign(),
+    options: BudgetOptions = BudgetOptions(posterior="laplace"),
+    fixed_beat: bool = False,
+    progress: bool = False,
+) -> Replicas:
     """Run ``n`` replicas of simulate + budget; seeds derive from ``seed`` (reproducible)."""
     root = np.random.SeedSequence(seed)
     children = root.spawn(n + 1)
-    beat_stream = np.random.default_rng(children[-1]) if fixed_beat else None
     area, u_stat, u_noise = [], [], []
     truth_area = None
     it = range(n)
     if progress:
         from tqdm import tqdm
+
         it = tqdm(it, desc=f"replicas {preset}")
     for i in it:
         rng = np.random.default_rng(children[i])
         streams = None
         if fixed_beat:
             # the same beat-note draws in every replica: spawn a fresh copy of the fixed stream
-            streams = {"beat": np.random.default_rng(np.random.SeedSequence(children[-1].entropy,
-                                                                             spawn_key=children[-1].spawn_key))}
+            streams = {
+                "beat": np.random.default_rng(
+                    np.random.SeedSequence(children[-1].entropy, spawn_key=children[-1].spawn_key)
+                )
+            }
         bundle, truth = simulate_campaign([preset], rng, campaign, streams=streams)
         cfg = next(iter(bundle.configs.values()))
         res = run_budget(bundle, cfg, options, np.random.default_rng([seed, i]))
@@ -68,11 +78,26 @@ def replicate(n: int, seed: int, preset: str = "letter-D2", campaign: Campaign =
         # everything ring-down noise drives: the line fit given H and the refinement of H, with
         # the correlation the budget gives them (GUM Eq. 16 on that subset of rows)
         bud = res.budget_a
-        sub = tuple(c for c in bud.components
-                    if c.name.startswith("ring-down noise") or c.name.endswith("(refined on ring-downs)"))
+        sub = tuple(
+            c
+            for c in bud.components
+            if c.name.startswith("ring-down noise") or c.name.endswith("(refined on ring-downs)")
+        )
         names = {c.name for c in sub}
         corr = {k: v for k, v in bud.correlations.items() if k[0] in names and k[1] in names}
-        u_noise.append(Budget(quantity="ring-down noise", value=bud.value, unit=bud.unit, components=sub,
-                              correlations=corr).combined_u)
+        u_noise.append(
+            Budget(
+                quantity="ring-down noise",
+                value=bud.value,
+                unit=bud.unit,
+                components=sub,
+                correlations=corr,
+            ).combined_u
+        )
         truth_area = truth["line"]["line_area_hz_per_m"]
-    return Replicas(area=np.array(area), u_stat=np.array(u_stat), u_noise=np.array(u_noise), area_true=truth_area)
+    return Replicas(
+        area=np.array(area),
+        u_stat=np.array(u_stat),
+        u_noise=np.array(u_noise),
+        area_true=truth_area,
+    )

@@ -1,17 +1,18 @@
 """Linear propagation maps against full refits (finite differences)."""
+
 from dataclasses import replace
 
 import numpy as np
 
-from bayes_tfcrds.physics.detection_chain import chain_from_tf
-from bayes_tfcrds.uncertainty.propagate import line_gain, tau_sensitivities
+from bayes_tfcrds.core.constants import C, wavenumber_cm_to_hz
+from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.refine import refine_transfer_function
 from bayes_tfcrds.fit.ringdown import fit_transients
-from bayes_tfcrds.simulate.campaign import PRESETS
 from bayes_tfcrds.fit.spectrum import SpectrumData
-from bayes_tfcrds.fit.line import fit_line
-from bayes_tfcrds.core.constants import C, wavenumber_cm_to_hz
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
+from bayes_tfcrds.simulate.campaign import PRESETS
+from bayes_tfcrds.uncertainty.propagate import line_gain, tau_sensitivities
 
 DT, K, T0 = 20e-9, 8192, -2e-6
 T = T0 + DT * np.arange(K)
@@ -20,7 +21,11 @@ NAMES = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")
 
 
 def _data(rng, taus, sigma=1.3e-4):
-    return 0.002 + 0.6 * chain_from_tf(TF).ringdown_response(T, taus) + sigma * rng.standard_normal((taus.size, K))
+    return (
+        0.002
+        + 0.6 * chain_from_tf(TF).ringdown_response(T, taus)
+        + sigma * rng.standard_normal((taus.size, K))
+    )
 
 
 def test_tau_sensitivities_match_refits():
@@ -47,16 +52,26 @@ def test_line_gain_matches_refits():
     gd = float(doppler_hwhm_hz(nu0, 296.0, 27.995))
     g0 = 9.3e6
     nu = nu0 + np.arange(-40, 41) * 203e6
-    alpha = 3.93e5 * profile("qsdhcp", nu - nu0, 0.0, gd, gamma0_hz=g0, gamma2_hz=0.1 * g0, nu_vc_hz=0.4 * g0).real
+    alpha = (
+        3.93e5
+        * profile(
+            "qsdhcp", nu - nu0, 0.0, gd, gamma0_hz=g0, gamma2_hz=0.1 * g0, nu_vc_hz=0.4 * g0
+        ).real
+    )
     alpha = alpha + 1.0 / (C * 32e-6)
     u = 2e-5 * alpha
     s = SpectrumData("absorption", nu, alpha, u)
     fit = fit_line([s], "qsdhcp", gd, nu0)
     k = line_gain(fit)
     rng = np.random.default_rng(3)
-    dy = 0.05 * u * rng.standard_normal(nu.size)        # a small correlated-free perturbation
-    refit = fit_line([SpectrumData("absorption", nu, alpha + dy, u)], "qsdhcp", gd, nu0,
-                     start=dict(zip(fit.names, fit.values)))
+    dy = 0.05 * u * rng.standard_normal(nu.size)  # a small correlated-free perturbation
+    refit = fit_line(
+        [SpectrumData("absorption", nu, alpha + dy, u)],
+        "qsdhcp",
+        gd,
+        nu0,
+        start=dict(zip(fit.names, fit.values)),
+    )
     ia = fit.names.index("line_area")
     predicted = k[ia] @ dy
     assert abs((refit.line_area - fit.line_area) - predicted) < 0.02 * abs(predicted)
@@ -70,11 +85,20 @@ def test_refinement_conditional_follows_the_other_parameters():
     tcs = np.tile([2e-6, 4e-6, 8e-6], taus.size)
     rows = np.repeat(np.arange(taus.size), 3)
     noise = np.full(taus.size, 1.3e-4)
-    ref = refine_transfer_function(T, sig, tcs, TF, free=("f_c_hz",), noise_v=noise, rows_of=rows, sens_names=NAMES)
+    ref = refine_transfer_function(
+        T, sig, tcs, TF, free=("f_c_hz",), noise_v=noise, rows_of=rows, sens_names=NAMES
+    )
     gain, _ = ref.conditional({"a_r": None})
     da = 0.02 * TF.a_r
-    ref2 = refine_transfer_function(T, sig, tcs, replace(ref.params, a_r=TF.a_r + da), free=("f_c_hz",),
-                                    noise_v=noise, rows_of=rows)
+    ref2 = refine_transfer_function(
+        T,
+        sig,
+        tcs,
+        replace(ref.params, a_r=TF.a_r + da),
+        free=("f_c_hz",),
+        noise_v=noise,
+        rows_of=rows,
+    )
     moved = ref2.params.f_c_hz - ref.params.f_c_hz
     assert abs(moved - gain[0, 0] * da) < 0.05 * abs(moved) + 0.2 * ref.stderr["f_c_hz"]
-    assert abs(moved) > 3 * ref.stderr["f_c_hz"]        # the coupling is real, not noise
+    assert abs(moved) > 3 * ref.stderr["f_c_hz"]  # the coupling is real, not noise

@@ -1,4 +1,5 @@
 """The line-area budget: outputs, convergence gates, bias, and honesty of the stated u(A)."""
+
 import json
 from dataclasses import replace
 
@@ -7,9 +8,9 @@ import pytest
 
 from bayes_tfcrds.bundle.writer import save_bundle
 from bayes_tfcrds.cli import main
-from tests.uncertainty.replicas import replicate
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
+from tests.uncertainty.replicas import replicate
 
 SMALL = replace(Campaign(), n_points=31, n_samples=8192, n_avg=10)
 TINY = replace(Campaign(), n_points=21, n_samples=4096, n_avg=25)
@@ -27,7 +28,9 @@ def small_bundle(tmp_path_factory):
 def test_budget_command_writes_every_output_and_passes_the_gates(small_bundle, tmp_path):
     path, truth = small_bundle
     out = tmp_path / "D2"
-    assert main(["budget", str(path), "--config", "D2", "--seed", "3", "--quiet", "-o", str(out)]) == 0
+    assert (
+        main(["budget", str(path), "--config", "D2", "--seed", "3", "--quiet", "-o", str(out)]) == 0
+    )
     s = json.loads((out / "budget.json").read_text())
     for key in ("line_area", "reference_area", "ratio", "en", "components", "diagnostics"):
         assert key in s
@@ -39,33 +42,48 @@ def test_budget_command_writes_every_output_and_passes_the_gates(small_bundle, t
     names = [c["name"] for c in s["components"]]
     for needed in ("ring-down noise", "H: f_c_hz", "t_cut choice", "line-shape model"):
         assert any(n.startswith(needed) for n in names), needed
-    for f in ("budget.md", "budget.csv", "posterior_h.nc", "posterior_line.nc", "posterior_cmds.nc",
-              "corner_h.png", "corner_line.png", "tau_posterior.csv"):
+    for f in (
+        "budget.md",
+        "budget.csv",
+        "posterior_h.nc",
+        "posterior_line.nc",
+        "posterior_cmds.nc",
+        "corner_h.png",
+        "corner_line.png",
+        "tau_posterior.csv",
+    ):
         assert (out / f).stat().st_size > 0, f
     import csv
+
     taus = list(csv.DictReader((out / "tau_posterior.csv").open()))
     assert len({r["t_cut_s"] for r in taus}) == 6
     # H moves short decays most: its share of u(tau) is larger at the line centre than at baseline
     at4 = [r for r in taus if abs(float(r["t_cut_s"]) - 4e-6) < 1e-9]
     short = min(at4, key=lambda r: float(r["tau_s"]))
     long_ = max(at4, key=lambda r: float(r["tau_s"]))
-    assert float(short["u_h_s"]) / float(short["tau_s"]) > float(long_["u_h_s"]) / float(long_["tau_s"])
+    assert float(short["u_h_s"]) / float(short["tau_s"]) > float(long_["u_h_s"]) / float(
+        long_["tau_s"]
+    )
     # unbiased against the truth within the statistical uncertainty (3 sigma)
     a_true = truth["line"]["line_area_hz_per_m"]
     assert abs(s["line_area"]["value_si"] - a_true) < 3 * s["line_area"]["u_si"]
     assert abs(s["ratio"]["value"] - 1) < 3 * s["ratio"]["u"]
     import arviz as az
+
     idata = az.from_netcdf(out / "posterior_line.nc")
     assert "line_area" in idata.posterior
 
 
 def test_crds_budget_shows_the_letter_bias(small_bundle):
     from bayes_tfcrds.bundle.reader import load_bundle
+
     path, _ = small_bundle
     b = load_bundle(path)
-    crds = run_budget(b, b.configs["D4"], replace(FAST, method="crds"), np.random.default_rng(1)).summary
+    crds = run_budget(
+        b, b.configs["D4"], replace(FAST, method="crds"), np.random.default_rng(1)
+    ).summary
     tf = run_budget(b, b.configs["D4"], FAST, np.random.default_rng(1)).summary
-    assert crds["ratio"]["value"] < 0.95 and crds["en"] < -5          # the letter: -8 % for D4
+    assert crds["ratio"]["value"] < 0.95 and crds["en"] < -5  # the letter: -8 % for D4
     assert abs(tf["ratio"]["value"] - 1) < 3 * tf["ratio"]["u"]
 
 
@@ -74,7 +92,7 @@ def test_stated_u_matches_the_scatter_over_simulations():
     ratio = rep.ratio_scatter_to_u()
     # 60 replicas: the sample sd has a relative standard error of 9 %; the issue's band is 20 %
     assert 0.8 < ratio < 1.2, ratio
-    assert abs(np.mean(rep.pulls)) < 3 / np.sqrt(60)        # unbiased
+    assert abs(np.mean(rep.pulls)) < 3 / np.sqrt(60)  # unbiased
 
 
 def test_noise_row_matches_the_noise_only_scatter():

@@ -11,6 +11,7 @@ the D2 chain) without telling it what is hidden. Effect sizes are the simulator'
 sqrt(2 dof)) and for A/A_ref - 1 against its fit uncertainty: a 3-sigma allowance, so each such
 check fails by chance in about 0.3 % of seeds.
 """
+
 from __future__ import annotations
 
 import json
@@ -19,21 +20,31 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from tests.discover.hidden_cases import HIDDEN_CASES
-from bayes_tfcrds.discover.workflow import DEFAULT_THRESHOLD, ExperimentModel, discover, parse_model
-from bayes_tfcrds.discover.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
+from bayes_tfcrds.discovery.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
+from bayes_tfcrds.discovery.workflow import (
+    DEFAULT_THRESHOLD,
+    ExperimentModel,
+    discover,
+    parse_model,
+)
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+from tests.discovery.hidden_cases import HIDDEN_CASES
 
 CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
 
 
 def _bundle(effects, seed):
-    return simulate_campaign(["letter-D2"], np.random.default_rng(seed), CAMPAIGN, effects, line_effects_default=False)
+    return simulate_campaign(
+        ["letter-D2"], np.random.default_rng(seed), CAMPAIGN, effects, line_effects_default=False
+    )
 
 
 def _at_noise_level(gaps):
-    return {k: round(gaps[k]["z"], 2) for k in ("transient_chi2", "spectrum_chi2", "crds_cmds")
-            if abs(gaps[k]["z"]) >= 3}
+    return {
+        k: round(gaps[k]["z"], 2)
+        for k in ("transient_chi2", "spectrum_chi2", "crds_cmds")
+        if abs(gaps[k]["z"]) >= 3
+    }
 
 
 def test_parse_model_and_derived_analysis():
@@ -63,9 +74,13 @@ def test_nonlinearity_inverse_and_unbiased_chi2():
     rd = bundle.configs["D2"].ringdowns
     m = rd.n_points
     tc, rows = np.full(m, 2e-6), np.arange(m)
-    chi = [fit_transient_rows(rd, tc, rows, TransientSpec(shared={"static_nonlinearity": {"beta": b}})).chi2.sum()
-           for b in (-1e-3, 0.0, 1e-3)]
-    a = (chi[0] + chi[2] - 2 * chi[1]) / 2          # chi2 = a (beta/1e-3)^2 + b (beta/1e-3) + c
+    chi = [
+        fit_transient_rows(
+            rd, tc, rows, TransientSpec(shared={"static_nonlinearity": {"beta": b}})
+        ).chi2.sum()
+        for b in (-1e-3, 0.0, 1e-3)
+    ]
+    a = (chi[0] + chi[2] - 2 * chi[1]) / 2  # chi2 = a (beta/1e-3)^2 + b (beta/1e-3) + c
     b = (chi[2] - chi[0]) / 2
     beta_hat, sigma = -b / (2 * a) * 1e-3, 1e-3 / np.sqrt(a)
     assert abs(beta_hat) < 3 * sigma, (beta_hat, sigma)
@@ -91,11 +106,15 @@ def test_hidden_effect_is_named_first_and_gaps_close(effect, hidden_runs):
     # the second mode's fraction and ratio trade off along a valley, so only the others)
     p = res.steps[0]["params"]
     tr = truth["effects"].get(effect, {})
-    checks = {"extinction_tail": ("fraction", "tau_s"), "static_nonlinearity": ("beta",),
-              "baseline_drift": ("slope_v_per_s",), "mode_beating": ("freq_hz",)}
+    checks = {
+        "extinction_tail": ("fraction", "tau_s"),
+        "static_nonlinearity": ("beta",),
+        "baseline_drift": ("slope_v_per_s",),
+        "mode_beating": ("freq_hz",),
+    }
     for name in checks.get(effect, ()):
         v, u = p[name]["value"], p[name]["u"]
-        assert abs(v - tr[name]) < 4 * u, (name, v, u, tr[name])      # 4 sigma: 0.006 % false failures
+        assert abs(v - tr[name]) < 4 * u, (name, v, u, tr[name])  # 4 sigma: 0.006 % false failures
 
 
 @pytest.mark.parametrize("seed", [31, 32])
@@ -110,10 +129,26 @@ def test_nothing_hidden_adds_nothing(seed):
 def test_two_hidden_effects_are_both_found_through_the_cli(tmp_path):
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.cli import main
+
     bundle, truth = _bundle({"baseline_drift": {}, "etalon": {}}, 41)
     path = tmp_path / "c.h5"
     save_bundle(bundle, path, truth=truth)
-    assert main(["discover", str(path), "--config", "D2", "--quiet", "--seed", "3", "-o", str(tmp_path / "out")]) == 0
+    assert (
+        main(
+            [
+                "discover",
+                str(path),
+                "--config",
+                "D2",
+                "--quiet",
+                "--seed",
+                "3",
+                "-o",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 0
+    )
     data = json.loads((tmp_path / "out" / "discovery.json").read_text())
     assert set(data["effects_added"]) == {"baseline_drift", "etalon"}, data["effects_added"]
     assert [s["effect"] for s in data["steps"]] == data["effects_added"]
@@ -122,6 +157,9 @@ def test_two_hidden_effects_are_both_found_through_the_cli(tmp_path):
     assert not _at_noise_level(data["final_gaps"]), data["final_gaps"]
     # the etalon opens the spectrum chi2 gap: far out before it is added, at the noise level after
     et = next(s for s in data["steps"] if s["effect"] == "etalon")
-    assert et["gaps_before"]["spectrum_chi2"]["z"] > 10 and abs(et["gaps_after"]["spectrum_chi2"]["z"]) < 3
+    assert (
+        et["gaps_before"]["spectrum_chi2"]["z"] > 10
+        and abs(et["gaps_after"]["spectrum_chi2"]["z"]) < 3
+    )
     html = (tmp_path / "out" / "discovery.html").read_text()
     assert "etalon" in html and "baseline_drift" in html and "data:image/png;base64" in html

@@ -1,4 +1,6 @@
-"""Model extensions the discovery workflow can switch on: transient-level and spectrum-level fitters.
+"""Model extensions the discovery workflow can switch on.
+
+Transient-level and spectrum-level fitters.
 
 Each canonical effect of :mod:`bayes_tfcrds.simulate` has a fitter here that adds its physics to
 the analysis model, with its own parameters (charged for by the discovery's evidence):
@@ -21,8 +23,8 @@ small optimisation of the total chi2):
   the extinction instead of the letter window (these only change ``method``/``window``).
 
 With TF-CRDS the extension terms pass through H as well: exponentials through the exact
-forward model of :mod:`bayes_tfcrds.forward`, the beating columns by one FFT on the extinction
-grid (for the ``letter`` window too: the window approximation is the main term's, not the
+forward model of :mod:`bayes_tfcrds.physics.forward`, the beating columns by one FFT on the
+extinction grid (for the ``letter`` window too: the window approximation is the main term's, not the
 small extension's).
 
 Spectrum level (:func:`fit_spectrum_extended`): the line profile follows the model (voigt,
@@ -32,6 +34,7 @@ second line of the same shape: offset and area ratio).
 
 Units: SI throughout (s, V, Hz, 1/m).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, field
@@ -41,13 +44,20 @@ from scipy import fft as sfft
 from scipy import optimize
 
 from bayes_tfcrds.core.constants import C
-from bayes_tfcrds.physics.forward import ramp_shape, extinction_grid, filtered_response, first_index_at, grid_transfer_function, model_grids
 from bayes_tfcrds.core.linalg import central_jacobian, covariance_from_fisher
-from bayes_tfcrds.physics.lineshape import profile
 from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.physics.forward import (
+    extinction_grid,
+    filtered_response,
+    first_index_at,
+    grid_transfer_function,
+    model_grids,
+    ramp_shape,
+)
+from bayes_tfcrds.physics.lineshape import profile
 from bayes_tfcrds.physics.transfer_function import TFParams
 
-V_REF = 1.0                         # V, the nonlinearity's reference level (as in the simulator)
+V_REF = 1.0  # V, the nonlinearity's reference level (as in the simulator)
 
 # shared parameters of each transient extension: (name, unit, lower, upper)
 SHARED = {
@@ -109,7 +119,7 @@ class _Columns:
             ts = self.xgrid.start_s + dt * np.arange(self.xgrid.n_fft)
             taper = np.ones(self.xgrid.n_fft)
             if self.xgrid.n_ramp:
-                taper[self.xgrid.m_ramp:] = 1.0 - ramp_shape(self.xgrid.n_ramp)
+                taper[self.xgrid.m_ramp :] = 1.0 - ramp_shape(self.xgrid.n_ramp)
             self.xt = ts
             self.xtaper = np.where(ts >= 0, taper, 0.0)
             self.xcols = np.arange(t.size) + self.xgrid.data_offset
@@ -162,11 +172,11 @@ class TransientResult:
 
     tau_s: np.ndarray
     tau_u_s: np.ndarray
-    coef: np.ndarray            # (n, k) linear parameters: b, B(, beating cos, sin)
+    coef: np.ndarray  # (n, k) linear parameters: b, B(, beating cos, sin)
     chi2: np.ndarray
     n_used: np.ndarray
     converged: np.ndarray
-    resid_norm: np.ndarray      # (n, T) residual / noise, zero outside the fit range
+    resid_norm: np.ndarray  # (n, T) residual / noise, zero outside the fit range
 
 
 def _solve(m, v):
@@ -207,7 +217,9 @@ def _varpro_tau(cols, y, wm, tau0, max_iter=40, rtol=1e-8, rel_step=1e-6):
         a, r, jp, w = linear(idx, tau[idx])
         num, den = (w * jp * r).sum(-1), (w * jp * jp).sum(-1)
         ok = np.isfinite(num) & (den > 0)
-        step = np.clip(np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx])
+        step = np.clip(
+            np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx]
+        )
         tau[idx] += step
         done = ok & (np.abs(step) <= rtol * tau[idx])
         conv[idx[done]] = True
@@ -217,7 +229,9 @@ def _varpro_tau(cols, y, wm, tau0, max_iter=40, rtol=1e-8, rel_step=1e-6):
     return tau, tau_u, a, r, conv
 
 
-def fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec: TransientSpec, tau_start_s=None) -> TransientResult:
+def fit_transient_rows(
+    ringdowns, t_cut_rows, rows_of, spec: TransientSpec, tau_start_s=None
+) -> TransientResult:
     """Fit rows (transient ``rows_of[i]`` from ``t_cut_rows[i]``, s) under ``spec``.
 
     Noise per sample is the bundle's ``noise_v`` (V); the chi2 is the weighted sum of squares.
@@ -226,7 +240,9 @@ def fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec: TransientSpec, tau_
     y = np.asarray(ringdowns.signal_v, float)[rows_of]
     sh = spec.shared
     if ringdowns.noise_v is None or np.ndim(ringdowns.noise_v) != 1:
-        raise ValueError("discovery needs one noise level per transient (/ringdowns/noise_v of shape (m,))")
+        raise ValueError(
+            "discovery needs one noise level per transient (/ringdowns/noise_v of shape (m,))"
+        )
     noise_rows = np.asarray(ringdowns.noise_v, float)[rows_of]
     noise2 = np.broadcast_to(noise_rows[:, None], y.shape)
     if "static_nonlinearity" in sh:
@@ -240,16 +256,34 @@ def fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec: TransientSpec, tau_
     dt = t[1] - t[0]
     first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut_rows])
     mask = np.arange(t.size)[None, :] >= first[:, None]
-    wm = mask / noise2 ** 2
+    wm = mask / noise2**2
     if not any(k in sh for k in SHAPE_EFFECTS):
-        fits = fit_transients(t, y, t_cut_rows, method=spec.method, tf=spec.tf,
-                              window=spec.window if spec.method == "tf-crds" else None,
-                              noise_v=np.ascontiguousarray(noise2), keep_residuals=True, tau_start_s=tau_start_s)
+        fits = fit_transients(
+            t,
+            y,
+            t_cut_rows,
+            method=spec.method,
+            tf=spec.tf,
+            window=spec.window if spec.method == "tf-crds" else None,
+            noise_v=np.ascontiguousarray(noise2),
+            keep_residuals=True,
+            tau_start_s=tau_start_s,
+        )
         # B of the CRDS model is its amplitude at t_cut; report both models' B at t = 0 alike
-        amp = fits.amplitude_v if spec.method == "tf-crds" else fits.amplitude_v * np.exp(t_cut_rows / fits.tau_s)
-        return TransientResult(tau_s=fits.tau_s, tau_u_s=fits.tau_u_s,
-                               coef=np.stack([fits.offset_v, amp], axis=1), chi2=fits.chi2, n_used=mask.sum(-1),
-                               converged=fits.converged, resid_norm=fits.residuals_v / noise2)
+        amp = (
+            fits.amplitude_v
+            if spec.method == "tf-crds"
+            else fits.amplitude_v * np.exp(t_cut_rows / fits.tau_s)
+        )
+        return TransientResult(
+            tau_s=fits.tau_s,
+            tau_u_s=fits.tau_u_s,
+            coef=np.stack([fits.offset_v, amp], axis=1),
+            chi2=fits.chi2,
+            n_used=mask.sum(-1),
+            converged=fits.converged,
+            resid_norm=fits.residuals_v / noise2,
+        )
     cols = _Columns(t, np.asarray(t_cut_rows, float), mask, spec)
     if tau_start_s is None:
         base = fit_transients(t, y, t_cut_rows, method="crds", noise_v=noise_rows)
@@ -257,8 +291,15 @@ def fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec: TransientSpec, tau_
     tau, tau_u, a, r, conv = _varpro_tau(cols, y, wm, np.asarray(tau_start_s, float))
     r = np.where(mask, r, 0.0)
     chi2 = (wm * r * r).sum(-1)
-    return TransientResult(tau_s=tau, tau_u_s=tau_u, coef=a, chi2=chi2, n_used=mask.sum(-1), converged=conv,
-                           resid_norm=r / noise2)
+    return TransientResult(
+        tau_s=tau,
+        tau_u_s=tau_u,
+        coef=a,
+        chi2=chi2,
+        n_used=mask.sum(-1),
+        converged=conv,
+        resid_norm=r / noise2,
+    )
 
 
 def residual_periodogram_peak(resid_norm, dt_s, f_min_hz=2e5):
@@ -278,14 +319,79 @@ def bin_ringdowns(rd, k: int):
     then re-evaluated on the full record.
     """
     from bayes_tfcrds.bundle.records import RingdownData
+
     n = rd.n_samples // k
-    sig = np.asarray(rd.signal_v, float)[:, :n * k].reshape(rd.n_points, n, k).mean(-1)
-    return RingdownData(nu_hz=rd.nu_hz, signal_v=sig, dt_s=rd.dt_s * k, t0_s=rd.t0_s + 0.5 * (k - 1) * rd.dt_s,
-                        noise_v=np.asarray(rd.noise_v, float) / np.sqrt(k))
+    sig = np.asarray(rd.signal_v, float)[:, : n * k].reshape(rd.n_points, n, k).mean(-1)
+    return RingdownData(
+        nu_hz=rd.nu_hz,
+        signal_v=sig,
+        dt_s=rd.dt_s * k,
+        t0_s=rd.t0_s + 0.5 * (k - 1) * rd.dt_s,
+        noise_v=np.asarray(rd.noise_v, float) / np.sqrt(k),
+    )
 
 
-def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, tau_start_s, resid_norm=None,
-                    search_bin: int = 8, with_cov: bool = True):
+def _search_two_exponential(name, chi2, lo, hi) -> np.ndarray:
+    """(fraction, time parameter) of a weak second exponential minimising ``chi2``.
+
+    The chi2 surface has a long curved valley (a larger fraction with a decay time closer to tau
+    mimics a smaller, faster one), so the fraction is profiled out by a bounded 1-d search inside
+    a bounded search over the time parameter (log tau_x for the tail), started from the best
+    point of a coarse grid.
+    """
+    inner = {}
+
+    def profile_f(g):
+        # at fixed time parameter the model is nearly linear in the fraction, so chi2(f) is
+        # nearly a parabola: two parabolic steps from f = 0 locate its minimum
+        if g not in inner:
+            fmax = hi[0] / 3
+            pts = {0.0: chi2([0.0, g]), 2e-3: chi2([2e-3, g]), 4e-3: chi2([4e-3, g])}
+            for _ in range(2):
+                f3 = sorted(pts, key=lambda f: pts[f])[:3]
+                fa, fb, fc = sorted(f3)
+                ca, cb, cc = pts[fa], pts[fb], pts[fc]
+                den = (fb - fa) * (cb - cc) - (fb - fc) * (cb - ca)
+                if den == 0:
+                    break
+                fn = fb - 0.5 * ((fb - fa) ** 2 * (cb - cc) - (fb - fc) ** 2 * (cb - ca)) / den
+                fn = float(np.clip(fn, 0.0, fmax)) if np.isfinite(fn) else 0.0
+                if any(abs(fn - f) < 1e-7 for f in pts):
+                    break
+                pts[fn] = chi2([fn, g])
+            fbest = min(pts, key=lambda f: pts[f])
+            inner[g] = (pts[fbest], fbest)
+        return inner[g][0]
+
+    if name == "second_mode":
+        to_g, grid = (lambda z: z), np.array([0.2, 0.4, 0.6, 0.75, 0.9])
+    else:
+        to_g, grid = np.exp, np.log([1e-6, 3e-6, 1e-5, 3e-5, 1e-4])
+    vals = [profile_f(float(to_g(z))) for z in grid]
+    b = int(np.argmin(vals))
+    zlo, zhi = grid[max(b - 1, 0)], grid[min(b + 1, grid.size - 1)]
+    sol = optimize.minimize_scalar(
+        lambda z: profile_f(float(to_g(z))),
+        bounds=(zlo, zhi),
+        method="bounded",
+        options={"xatol": 3e-3, "maxiter": 12},
+    )
+    g_best = float(to_g(sol.x)) if sol.fun <= vals[b] else float(to_g(grid[b]))
+    x = np.array([inner[g_best][1], g_best])
+    return x
+
+
+def optimise_shared(
+    name,
+    ringdowns,
+    t_cut_rows,
+    rows_of,
+    base: TransientSpec,
+    tau_start_s,
+    resid_norm=None,
+    search_bin: int = 8,
+    with_cov: bool = True,
+):
     """Fit the shared parameters of extension ``name`` on the rows' total chi2.
 
     Returns (params dict, TransientResult, covariance of the shared parameters or None).
@@ -303,12 +409,17 @@ def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, t
     warm = {"tau": np.asarray(tau_start_s, float)}
 
     def spec_at(x):
-        return TransientSpec(base.method, base.window, base.tf, {**base.shared, name: dict(zip(names, map(float, x)))})
+        return TransientSpec(
+            base.method,
+            base.window,
+            base.tf,
+            {**base.shared, name: dict(zip(names, map(float, x)))},
+        )
 
     def key_of(x):
         x = np.clip(np.asarray(x, float), lo, hi)
         if name in ("second_mode", "extinction_tail") and x[0] == 0.0:
-            x = np.array([0.0, lo[1]])        # no second exponential: the time parameter is moot
+            x = np.array([0.0, lo[1]])  # no second exponential: the time parameter is moot
         return x, tuple(np.round(x, 14))
 
     def chi2(x):
@@ -321,61 +432,29 @@ def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, t
         return cache[key][0]
 
     if name == "static_nonlinearity":
-        sol = optimize.minimize_scalar(lambda b: chi2([b]), bounds=(lo[0], hi[0]), method="bounded",
-                                       options={"xatol": 1e-7})
+        sol = optimize.minimize_scalar(
+            lambda b: chi2([b]), bounds=(lo[0], hi[0]), method="bounded", options={"xatol": 1e-7}
+        )
         x = np.array([sol.x])
     elif name == "baseline_drift":
-        sol = optimize.minimize_scalar(lambda s: chi2([s]), bounds=(lo[0], hi[0]), method="bounded",
-                                       options={"xatol": 1e-4})
+        sol = optimize.minimize_scalar(
+            lambda s: chi2([s]), bounds=(lo[0], hi[0]), method="bounded", options={"xatol": 1e-4}
+        )
         x = np.array([sol.x])
     elif name == "mode_beating":
         dt = float(ringdowns.dt_s)
         f0 = residual_periodogram_peak(resid_norm, dt) if resid_norm is not None else 1e6
         n_eff = resid_norm.shape[-1] if resid_norm is not None else ringdowns.n_samples
         df = 1.0 / (n_eff * dt)
-        sol = optimize.minimize_scalar(lambda f: chi2([f]), bounds=(max(lo[0], f0 - 3 * df), min(hi[0], f0 + 3 * df)),
-                                       method="bounded", options={"xatol": 1e-3 * df})
+        sol = optimize.minimize_scalar(
+            lambda f: chi2([f]),
+            bounds=(max(lo[0], f0 - 3 * df), min(hi[0], f0 + 3 * df)),
+            method="bounded",
+            options={"xatol": 1e-3 * df},
+        )
         x = np.array([sol.x])
     else:
-        # a weak second exponential: the chi2 surface has a long curved valley (a larger
-        # fraction with a decay time closer to tau mimics a smaller, faster one), so the fraction
-        # is profiled out by a bounded 1-d search inside a bounded search over the time parameter
-        # (log tau_x for the tail), started from the best point of a coarse grid
-        inner = {}
-
-        def profile_f(g):
-            # at fixed time parameter the model is nearly linear in the fraction, so chi2(f) is
-            # nearly a parabola: two parabolic steps from f = 0 locate its minimum
-            if g not in inner:
-                fmax = hi[0] / 3
-                pts = {0.0: chi2([0.0, g]), 2e-3: chi2([2e-3, g]), 4e-3: chi2([4e-3, g])}
-                for _ in range(2):
-                    f3 = sorted(pts, key=lambda f: pts[f])[:3]
-                    fa, fb, fc = sorted(f3)
-                    ca, cb, cc = pts[fa], pts[fb], pts[fc]
-                    den = (fb - fa) * (cb - cc) - (fb - fc) * (cb - ca)
-                    if den == 0:
-                        break
-                    fn = fb - 0.5 * ((fb - fa) ** 2 * (cb - cc) - (fb - fc) ** 2 * (cb - ca)) / den
-                    fn = float(np.clip(fn, 0.0, fmax)) if np.isfinite(fn) else 0.0
-                    if any(abs(fn - f) < 1e-7 for f in pts):
-                        break
-                    pts[fn] = chi2([fn, g])
-                fbest = min(pts, key=lambda f: pts[f])
-                inner[g] = (pts[fbest], fbest)
-            return inner[g][0]
-
-        if name == "second_mode":
-            to_g, grid = (lambda z: z), np.array([0.2, 0.4, 0.6, 0.75, 0.9])
-        else:
-            to_g, grid = np.exp, np.log([1e-6, 3e-6, 1e-5, 3e-5, 1e-4])
-        vals = [profile_f(float(to_g(z))) for z in grid]
-        b = int(np.argmin(vals))
-        zlo, zhi = grid[max(b - 1, 0)], grid[min(b + 1, grid.size - 1)]
-        sol = optimize.minimize_scalar(lambda z: profile_f(float(to_g(z))), bounds=(zlo, zhi), method="bounded",
-                                       options={"xatol": 3e-3, "maxiter": 12})
-        g_best = float(to_g(sol.x)) if sol.fun <= vals[b] else float(to_g(grid[b]))
-        x = np.array([inner[g_best][1], g_best])
+        x = _search_two_exponential(name, chi2, lo, hi)
     x = np.clip(x, lo, hi)
     if ringdowns is not full:
         ringdowns = full
@@ -384,21 +463,36 @@ def optimise_shared(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, t
         if name in ("static_nonlinearity", "baseline_drift"):
             # one-parameter searches are cheap: polish on the full record
             w = 0.05 * (np.abs(x[0]) + (1e-4 if name == "static_nonlinearity" else 0.05))
-            x = np.array([optimize.minimize_scalar(lambda v: chi2([v]), bounds=(x[0] - w, x[0] + w), method="bounded",
-                                                   options={"xatol": 1e-3 * w}).x])
+            x = np.array(
+                [
+                    optimize.minimize_scalar(
+                        lambda v: chi2([v]),
+                        bounds=(x[0] - w, x[0] + w),
+                        method="bounded",
+                        options={"xatol": 1e-3 * w},
+                    ).x
+                ]
+            )
     chi2(x)
     res = cache[key_of(x)[1]][1]
     cov = _shared_covariance(chi2, x, lo, hi) if with_cov else None
     return dict(zip(names, map(float, x))), res, cov
 
 
-def shared_covariance(name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, params: dict, tau_start_s):
-    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2 curvature)."""
+def shared_covariance(
+    name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, params: dict, tau_start_s
+):
+    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2)."""
     names = [s[0] for s in SHARED[name]]
     warm = {"tau": np.asarray(tau_start_s, float)}
 
     def chi2(x):
-        spec = TransientSpec(base.method, base.window, base.tf, {**base.shared, name: dict(zip(names, map(float, x)))})
+        spec = TransientSpec(
+            base.method,
+            base.window,
+            base.tf,
+            {**base.shared, name: dict(zip(names, map(float, x)))},
+        )
         res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec, warm["tau"])
         return float(res.chi2.sum())
 
@@ -420,8 +514,9 @@ def _shared_covariance(chi2, x, lo, hi):
         for j in range(i):
             ej = np.zeros(k)
             ej[j] = h[j]
-            hess[i, j] = hess[j, i] = (chi2(x + ei + ej) - chi2(x + ei - ej) - chi2(x - ei + ej)
-                                       + chi2(x - ei - ej)) / (4 * h[i] * h[j])
+            hess[i, j] = hess[j, i] = (
+                chi2(x + ei + ej) - chi2(x + ei - ej) - chi2(x - ei + ej) + chi2(x - ei - ej)
+            ) / (4 * h[i] * h[j])
     try:
         cov = 2.0 * np.linalg.inv(hess)
     except np.linalg.LinAlgError:
@@ -433,8 +528,12 @@ def _shared_covariance(chi2, x, lo, hi):
 
 # --------------------------------------------------------------------------- spectrum model
 
-PROFILE_SHAPE_FREE = {"voigt": ("gamma0_hz",), "sdvp": ("gamma0_hz", "gamma2_hz"),
-                      "rautian": ("gamma0_hz", "nu_vc_hz"), "qsdhcp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz")}
+PROFILE_SHAPE_FREE = {
+    "voigt": ("gamma0_hz",),
+    "sdvp": ("gamma0_hz", "gamma2_hz"),
+    "rautian": ("gamma0_hz", "nu_vc_hz"),
+    "qsdhcp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz"),
+}
 
 
 @dataclass(frozen=True)
@@ -486,19 +585,111 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
     det = nu_hz - nu_ref_hz
     g = profile(profile_name, det, p["position_offset_hz"], doppler_hwhm_hz, **shape)
     if "neighbour_offset_hz" in p:
-        g = g + p["neighbour_ratio"] * profile(profile_name, det, p["position_offset_hz"] + p["neighbour_offset_hz"],
-                                               doppler_hwhm_hz, **shape)
+        g = g + p["neighbour_ratio"] * profile(
+            profile_name,
+            det,
+            p["position_offset_hz"] + p["neighbour_offset_hz"],
+            doppler_hwhm_hz,
+            **shape,
+        )
     if kind == "absorption":
         y = p["line_area"] * g.real + p["baseline"]
     else:
         y = C * p["line_area"] * g.imag / (4 * np.pi) + p["baseline"] + p["slope"] * det
     if "etalon_amplitude_per_m" in p and kind == "absorption":
-        y = y + p["etalon_amplitude_per_m"] * np.sin(2 * np.pi * det / p["etalon_period_hz"] + p["etalon_phase_rad"])
+        y = y + p["etalon_amplitude_per_m"] * np.sin(
+            2 * np.pi * det / p["etalon_period_hz"] + p["etalon_phase_rad"]
+        )
     return y
 
 
-def fit_spectrum_extended(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras=(),
-                          fixed=None, start=None) -> SpectrumFit:
+#: lower bounds of the spectrum parameters (others unbounded below)
+_LOWER_BOUNDS = {
+    "line_area": 0.0,
+    "gamma0_hz": 0.0,
+    "gamma2_hz": 0.0,
+    "nu_vc_hz": 0.0,
+    "etalon_period_hz": 1e8,
+    "neighbour_ratio": 0.0,
+    "etalon_amplitude_per_m": 0.0,
+}
+
+
+def _absolute_scales(doppler_hwhm_hz) -> dict:
+    """Absolute scales added to |theta| where a spectrum parameter may be 0."""
+    return {
+        "position_offset_hz": 1e-3 * doppler_hwhm_hz,
+        "etalon_phase_rad": 1.0,
+        "neighbour_offset_hz": doppler_hwhm_hz,
+        "slope": 1e-9,
+        "baseline": 0.0,
+        "etalon_amplitude_per_m": 1e-8,
+        "neighbour_ratio": 1e-4,
+    }
+
+
+def _default_start(kind, nu_hz, y, doppler_hwhm_hz) -> dict:
+    """Starting values of every spectrum parameter: the area and baseline from the data."""
+    order = np.argsort(nu_hz)
+    if kind == "absorption":
+        base0 = float(np.median(np.concatenate([y[order][:4], y[order][-4:]])))
+        area0 = float(np.trapezoid(y[order] - base0, nu_hz[order]))
+    else:
+        base0 = 0.0
+        area0 = float((y.max() - y.min()) * 4 * np.pi / C * np.pi * doppler_hwhm_hz * 0.9)
+    default = {
+        "line_area": area0,
+        "position_offset_hz": 0.0,
+        "gamma0_hz": 0.05 * doppler_hwhm_hz,
+        "gamma2_hz": 0.01 * doppler_hwhm_hz,
+        "nu_vc_hz": 0.01 * doppler_hwhm_hz,
+        "baseline": base0,
+        "slope": 0.0,
+        "etalon_amplitude_per_m": 0.0,
+        "etalon_period_hz": 2e9,
+        "etalon_phase_rad": 0.0,
+        "neighbour_offset_hz": 1e9,
+        "neighbour_ratio": 0.0,
+    }
+    return default
+
+
+def _extra_starts(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras, start, span):
+    """Starts for the etalon period and the neighbour's position.
+
+    From the residuals of the fit without the extras: the strongest sinusoids, the largest bumps
+    away from the line.
+    """
+    det = nu_hz - nu_ref_hz
+    # residuals of the fit without the extras point at the period / the neighbour's position
+    plain = fit_spectrum_extended(
+        kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, (), fixed=None
+    )
+    r = -plain.residuals_norm * u  # data minus model
+    st = {**start, **dict(zip(plain.names, plain.values))}
+    starts = []
+    periods = _periodogram_periods(det, r / u, span) if "etalon" in extras else [None]
+    far = np.abs(det) > 2 * doppler_hwhm_hz
+    bumps = det[far][np.argsort(-(r / u)[far])][:3] if "neighbour_line" in extras else [None]
+    for per in periods:
+        for b in bumps:
+            s = dict(st)
+            if per is not None:
+                amp, ph = _sinusoid_at(det, r, u, per)
+                s.update(
+                    etalon_period_hz=per,
+                    etalon_amplitude_per_m=max(amp, 1e-12),
+                    etalon_phase_rad=ph,
+                )
+            if b is not None:
+                s.update(neighbour_offset_hz=float(b), neighbour_ratio=1e-3)
+            starts.append(s)
+    return starts
+
+
+def fit_spectrum_extended(
+    kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras=(), fixed=None, start=None
+) -> SpectrumFit:
     """Weighted least squares of a line (+ extras) to one spectrum; covariance from the Jacobian.
 
     ``fixed`` holds parameters not fitted (e.g. the neighbour line's position and ratio in the
@@ -510,26 +701,15 @@ def fit_spectrum_extended(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_r
     extras = tuple(e for e in extras if not (e == "etalon" and kind == "dispersion"))
     names_all = _names(kind, profile_name, extras)
     names = tuple(n for n in names_all if n not in fixed)
-    det = nu_hz - nu_ref_hz
-    order = np.argsort(nu_hz)
-    if kind == "absorption":
-        base0 = float(np.median(np.concatenate([y[order][:4], y[order][-4:]])))
-        area0 = float(np.trapezoid(y[order] - base0, nu_hz[order]))
-    else:
-        base0 = 0.0
-        area0 = float((y.max() - y.min()) * 4 * np.pi / C * np.pi * doppler_hwhm_hz * 0.9)
-    default = {"line_area": area0, "position_offset_hz": 0.0, "gamma0_hz": 0.05 * doppler_hwhm_hz,
-               "gamma2_hz": 0.01 * doppler_hwhm_hz, "nu_vc_hz": 0.01 * doppler_hwhm_hz, "baseline": base0,
-               "slope": 0.0, "etalon_amplitude_per_m": 0.0, "etalon_period_hz": 2e9, "etalon_phase_rad": 0.0,
-               "neighbour_offset_hz": 1e9, "neighbour_ratio": 0.0}
+    default = _default_start(kind, nu_hz, y, doppler_hwhm_hz)
     start = {**default, **(start or {})}
-    lo = {"line_area": 0.0, "gamma0_hz": 0.0, "gamma2_hz": 0.0, "nu_vc_hz": 0.0, "etalon_period_hz": 1e8,
-          "neighbour_ratio": 0.0, "etalon_amplitude_per_m": 0.0}
+    lo = _LOWER_BOUNDS
     lo_v = np.array([lo.get(n, -np.inf) for n in names])
     span = float(np.ptp(nu_hz))
-    hi_v = np.array([{"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5}.get(n, np.inf) for n in names])
-    nonsc = {"position_offset_hz": 1e-3 * doppler_hwhm_hz, "etalon_phase_rad": 1.0, "neighbour_offset_hz": doppler_hwhm_hz,
-             "slope": 1e-9, "baseline": 0.0, "etalon_amplitude_per_m": 1e-8, "neighbour_ratio": 1e-4}
+    hi_v = np.array(
+        [{"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5}.get(n, np.inf) for n in names]
+    )
+    nonsc = _absolute_scales(doppler_hwhm_hz)
 
     def run(st):
         th0 = np.array([st[n] for n in names], float)
@@ -539,51 +719,67 @@ def fit_spectrum_extended(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_r
 
         def resid(x):
             th = x * sc
-            return (spectrum_model(th, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed) - y) / u
+            return (
+                spectrum_model(
+                    th, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed
+                )
+                - y
+            ) / u
 
-        sol = optimize.least_squares(resid, th0 / sc, bounds=(lo_v / sc, hi_v / sc), x_scale="jac",
-                                     xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=3000)
+        sol = optimize.least_squares(
+            resid,
+            th0 / sc,
+            bounds=(lo_v / sc, hi_v / sc),
+            x_scale="jac",
+            xtol=1e-12,
+            ftol=1e-12,
+            gtol=1e-12,
+            max_nfev=3000,
+        )
         return float(2 * sol.cost), sol.x * sc
 
     starts = [start]
     if "etalon" in extras or "neighbour_line" in extras:
-        # residuals of the fit without the extras point at the period / the neighbour's position
-        plain = fit_spectrum_extended(kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, (), fixed=None)
-        r = -plain.residuals_norm * u          # data minus model
-        st = {**start, **dict(zip(plain.names, plain.values))}
-        starts = []
-        periods = _periodogram_periods(det, r / u, span) if "etalon" in extras else [None]
-        far = np.abs(det) > 2 * doppler_hwhm_hz
-        bumps = det[far][np.argsort(-(r / u)[far])][:3] if "neighbour_line" in extras else [None]
-        for per in periods:
-            for b in bumps:
-                s = dict(st)
-                if per is not None:
-                    amp, ph = _sinusoid_at(det, r, u, per)
-                    s.update(etalon_period_hz=per, etalon_amplitude_per_m=max(amp, 1e-12), etalon_phase_rad=ph)
-                if b is not None:
-                    s.update(neighbour_offset_hz=float(b), neighbour_ratio=1e-3)
-                starts.append(s)
+        starts = _extra_starts(
+            kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras, start, span
+        )
     best = min((run(s) for s in starts), key=lambda c: c[0])
     chi2, theta = best
 
     def model(th):
-        return spectrum_model(th, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed)
+        return spectrum_model(
+            th, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_hwhm_hz, fixed
+        )
 
-    steps = 1e-6 * np.maximum(np.abs(theta), np.array([nonsc.get(n, 1e-3 * abs(t) + 1e-30) for n, t in zip(names, theta)]))
+    steps = 1e-6 * np.maximum(
+        np.abs(theta), np.array([nonsc.get(n, 1e-3 * abs(t) + 1e-30) for n, t in zip(names, theta)])
+    )
     jac = central_jacobian(model, theta, steps) / u[:, None]
     try:
         cov = covariance_from_fisher(jac.T @ jac)
     except np.linalg.LinAlgError:
         cov = np.full((theta.size, theta.size), np.nan)
     r = (model(theta) - y) / u
-    return SpectrumFit(kind=kind, profile=profile_name, names=names, values=theta, cov=cov, chi2=float(r @ r),
-                       n=y.size, residuals_norm=r, nu_hz=nu_hz)
+    return SpectrumFit(
+        kind=kind,
+        profile=profile_name,
+        names=names,
+        values=theta,
+        cov=cov,
+        chi2=float(r @ r),
+        n=y.size,
+        residuals_norm=r,
+        nu_hz=nu_hz,
+    )
 
 
 def _periodogram_periods(det, z, span, n_best=3):
-    """Periods (Hz) of the strongest sinusoids in residuals z on the uneven grid det (Lomb-Scargle)."""
+    """Periods (Hz) of the strongest sinusoids in residuals z on the uneven grid det.
+
+    Lomb-Scargle periodogram (the detunings are not evenly spaced).
+    """
     from scipy.signal import lombscargle
+
     periods = np.geomspace(2.5 * np.median(np.diff(np.sort(det))), span, 300)
     pw = lombscargle(det, z - z.mean(), 2 * np.pi / periods)
     idx = np.argsort(-pw)

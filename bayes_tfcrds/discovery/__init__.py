@@ -1,0 +1,7 @@
+"""Discovery.
+
+Compare a model of the experiment with every data block, try candidate effects as model extensions
+and add what the evidence supports.
+
+May import: core, output, bundle, physics, simulate, fit.
+"""

@@ -1,0 +1,837 @@
+"""Discovery: find the physical effect a model of the experiment is missing, add it, repeat.
+
+Start from a declared model (default plain CRDS with a Voigt line), compare it with every data
+block where model and data can disagree (transient residuals in time and frequency, tau and A
+against t_cut, spectrum residuals, the beat note, the CRDS-CMDS gap), then try each canonical
+effect as a model extension (:mod:`bayes_tfcrds.discovery.extensions`), score it by the drop of BIC
+on the data block it acts on, add the best if its evidence passes a threshold, and repeat until none
+does.
+
+Evidence is ``Delta BIC = chi2_before - chi2_after - k ln n`` on the block (every extra
+parameter counted, per-transient ones included). The threshold (``DEFAULT_THRESHOLD`` = 10, "very
+strong" on the Kass-Raftery scale of 2 ln B) is checked on data with nothing hidden by
+``tests/discovery/test_discover.py`` and ``benchmarks/discovery_confusion.py``.
+
+Units: SI inside (s, Hz, V, 1/m); cm^-2 only in the report.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from bayes_tfcrds.discovery.extensions import (
+    SHARED,
+    TransientSpec,
+    fit_spectrum_extended,
+    fit_transient_rows,
+    optimise_shared,
+    shared_covariance,
+)
+from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate
+from bayes_tfcrds.fit.line_analysis import doppler_of
+from bayes_tfcrds.fit.spectrum import absorption_from_tau
+
+CANDIDATES = (
+    "transfer_function",
+    "window_history",
+    "static_nonlinearity",
+    "extinction_tail",
+    "second_mode",
+    "baseline_drift",
+    "mode_beating",
+    "speed_dependence",
+    "hard_collisions",
+    "etalon",
+    "neighbour_line",
+)
+TRANSIENT_LEVEL = (
+    "static_nonlinearity",
+    "extinction_tail",
+    "second_mode",
+    "baseline_drift",
+    "mode_beating",
+)
+SPECTRUM_LEVEL = ("speed_dependence", "hard_collisions", "etalon", "neighbour_line")
+#: t_cuts (s) of discovery: three suffice to see tau and A move with t_cut, and keep each round fast
+DISCOVERY_T_CUTS = (2e-6, 4e-6, 6e-6)
+DEFAULT_THRESHOLD = 10.0
+N_TIME_BINS = 12
+
+
+# --------------------------------------------------------------------------- the model
+
+
+@dataclass(frozen=True)
+class ExperimentModel:
+    """Which canonical effects the analysis model contains; the analysis choices follow."""
+
+    effects: frozenset = frozenset()
+
+    def __post_init__(self):
+        bad = set(self.effects) - set(CANDIDATES)
+        if bad:
+            raise ValueError(f"unknown effect(s) {sorted(bad)}; choose from {list(CANDIDATES)}")
+        if "window_history" in self.effects and "transfer_function" not in self.effects:
+            raise ValueError(
+                "window_history (letter -> extinction window) needs transfer_function in the model"
+            )
+
+    @property
+    def method(self) -> str:
+        return "tf-crds" if "transfer_function" in self.effects else "crds"
+
+    @property
+    def window(self) -> str | None:
+        if self.method == "crds":
+            return None
+        return "extinction" if "window_history" in self.effects else "letter"
+
+    @property
+    def profile(self) -> str:
+        sd, hc = "speed_dependence" in self.effects, "hard_collisions" in self.effects
+        return {
+            (False, False): "voigt",
+            (True, False): "sdvp",
+            (False, True): "rautian",
+            (True, True): "qsdhcp",
+        }[(sd, hc)]
+
+    @property
+    def spectrum_extras(self) -> tuple:
+        return tuple(e for e in ("etalon", "neighbour_line") if e in self.effects)
+
+    def plus(self, effect) -> ExperimentModel:
+        return ExperimentModel(self.effects | {effect})
+
+    def label(self) -> str:
+        return "+".join(
+            [
+                self.method,
+                self.profile,
+                *sorted(
+                    self.effects
+                    - {"transfer_function", "window_history", "speed_dependence", "hard_collisions"}
+                ),
+            ]
+            + (["extinction-window"] if self.window == "extinction" else [])
+        )
+
+
+def parse_model(text: str | None) -> ExperimentModel:
+    """``crds+voigt`` (the default) or a comma/plus separated list of canonical effect names."""
+    if text is None:
+        return ExperimentModel()
+    items = [s.strip() for s in text.replace("+", ",").split(",") if s.strip()]
+    items = [s for s in items if s not in ("crds", "voigt")]
+    if "tf-crds" in items:
+        items = [s for s in items if s != "tf-crds"] + ["transfer_function"]
+    return ExperimentModel(frozenset(items))
+
+
+@dataclass
+class ModelState:
+    """A model with its fitted shared parameters (transient extensions) and H calibration."""
+
+    model: ExperimentModel
+    shared: dict = field(default_factory=dict)
+    shared_u: dict = field(default_factory=dict)
+    calibration: object = None
+
+    def spec(self) -> TransientSpec:
+        tf = (
+            self.calibration.params
+            if (self.calibration is not None and self.model.method == "tf-crds")
+            else None
+        )
+        return TransientSpec(
+            self.model.method,
+            self.model.window,
+            tf,
+            {k: v for k, v in self.shared.items() if k in self.model.effects},
+        )
+
+
+# --------------------------------------------------------------------------- comparison with data
+
+
+@dataclass
+class Evaluation:
+    """Fits of every data block under one model state, and the gap metrics."""
+
+    state: ModelState
+    t_cuts: np.ndarray
+    good: np.ndarray
+    tau: np.ndarray  # (m_good, c)
+    tau_u: np.ndarray
+    block: dict  # name -> (chi2, n): the scoring blocks
+    lines: list  # SpectrumFit per t_cut
+    reference: object
+    gaps: dict
+    resid_first: np.ndarray  # normalised residual rows at t_cut[0]
+    detuning: np.ndarray  # (m_good,) Hz
+    beat: dict
+    dt_s: float = 0.0
+
+
+def _z_from_chi2(chi2, dof):
+    return float((chi2 - dof) / np.sqrt(2.0 * max(dof, 1)))
+
+
+def _z_from_p(p):
+    return float(stats.norm.isf(np.clip(p, 1e-300, 1.0)))
+
+
+def _region(det_hz, gd_hz):
+    a = abs(det_hz)
+    return f"detuning {det_hz / 1e6:+.0f} MHz ({'core' if a < 2 * gd_hz else 'wing'})"
+
+
+def beat_block(config, state: ModelState):
+    """Beat-note chi2 under the model: a flat |H| (no chain) or the fitted H."""
+    tfd = config.transfer_function
+    if tfd is None:
+        return None
+    y, u = np.asarray(tfd.h_mag, float), np.asarray(tfd.h_mag_u, float)
+    if state.model.method == "tf-crds" and state.calibration is not None:
+        b = state.calibration.beat
+        r = b.residuals
+        return {
+            "chi2": float(b.chi2),
+            "dof": int(b.dof),
+            "n": int(y.size),
+            "k": len(b.free) + 1,
+            "resid": np.asarray(r),
+            "f_hz": np.asarray(tfd.f_hz),
+        }
+    w = 1.0 / u**2
+    k_hat = np.sum(w * y) / np.sum(w)
+    r = (y - k_hat) / u
+    return {
+        "chi2": float(r @ r),
+        "dof": int(y.size - 1),
+        "n": int(y.size),
+        "k": 1,
+        "resid": r,
+        "f_hz": np.asarray(tfd.f_hz),
+    }
+
+
+def fit_lines(bundle, config, model: ExperimentModel, nu, tau, tau_u):
+    """CRDS line fit of 1/(c tau) (1/m) under the model's profile and extras."""
+    gd = doppler_of(bundle.sample)
+    a, ua = absorption_from_tau(tau, tau_u)
+    return fit_spectrum_extended(
+        "absorption", nu, a, ua, model.profile, gd, bundle.sample.nu0_hz, model.spectrum_extras
+    )
+
+
+def fit_cmds(bundle, config, model: ExperimentModel, line):
+    """CMDS reference A_ref under the same profile; a neighbour line found in CRDS is held fixed."""
+    if config.cmds is None:
+        return None
+    gd = doppler_of(bundle.sample)
+    cm = config.cmds
+    fixed = {}
+    extras = ()
+    if "neighbour_line" in model.effects:
+        extras = ("neighbour_line",)
+        fixed = {
+            "neighbour_offset_hz": line.value("neighbour_offset_hz"),
+            "neighbour_ratio": line.value("neighbour_ratio"),
+        }
+    return fit_spectrum_extended(
+        "dispersion",
+        cm.nu_hz,
+        cm.shift_hz,
+        cm.shift_u_hz,
+        model.profile,
+        gd,
+        bundle.sample.nu0_hz,
+        extras,
+        fixed=fixed,
+    )
+
+
+def _transient_gaps(rd, res, first, spec, t_cuts, det, gd, m: int) -> tuple:
+    """Transient residuals at the first t_cut (all rows start there, so they stack).
+
+    Chi2, time structure (binned means) and frequency structure (periodogram peak). Returns (gaps,
+    stacked normalised residuals).
+    """
+    gaps = {}
+    n_lin = spec.n_row_params() + 1
+    chi2_t = float(res.chi2[first].sum())
+    n_t = int(res.n_used[first].sum())
+    dof_t = n_t - m * n_lin - spec.n_shared()
+    per_row_z = (res.chi2[first] - (res.n_used[first] - n_lin)) / np.sqrt(2 * res.n_used[first])
+    i = int(np.argmax(per_row_z))
+    gaps["transient_chi2"] = {
+        "value": chi2_t / dof_t,
+        "expected": 1.0,
+        "spread": float(np.sqrt(2.0 / dof_t)),
+        "z": _z_from_chi2(chi2_t, dof_t),
+        "where": f"transients, t >= {t_cuts[0] * 1e6:g} us; worst at {_region(det[i], gd)}",
+    }
+    rn = res.resid_norm[first]
+    j0 = int(np.argmax(np.any(rn != 0, axis=0)))
+    rn = rn[:, j0:]
+    tt = rd.time_s[j0:]
+    edges = np.unique(np.geomspace(1, rn.shape[1], N_TIME_BINS + 1).astype(int)) - 1
+    edges[-1] = rn.shape[1]
+    s_bins = np.add.reduceat(rn, edges[:-1], axis=1) / np.sqrt(np.diff(edges))[None, :]
+    tot = float((s_bins**2).sum())
+    # each row's fit removes n_lin directions, which the bins resolve: nb - n_lin m degrees of
+    # freedom
+    nb = s_bins.size - n_lin * m
+    worst = int(np.argmax((s_bins**2).sum(0)))
+    gaps["transient_time_structure"] = {
+        "value": tot / nb,
+        "expected": 1.0,
+        "spread": float(np.sqrt(2.0 / nb)),
+        "z": _z_from_chi2(tot, nb),
+        "where": f"transients, t in [{tt[edges[worst]] * 1e6:.2f}, "
+        f"{tt[edges[worst + 1] - 1] * 1e6:.2f}] us (binned residual means, {N_TIME_BINS} "
+        "log-spaced bins per transient)",
+    }
+    pw = np.abs(np.fft.rfft(rn, axis=1)[:, 1:]) ** 2 / rn.shape[1]
+    f = np.fft.rfftfreq(rn.shape[1], rd.dt_s)[1:]
+    summed = pw.sum(0)
+    k = int(np.argmax(summed))
+    # white unit noise: each periodogram ordinate ~ Exp(1), the sum over m rows ~ Gamma(m);
+    # the largest of K ordinates: p = 1 - (1 - sf)^K
+    sf = stats.gamma.sf(summed[k], m)
+    p = -np.expm1(summed.size * np.log1p(-min(sf, 1 - 1e-16))) if sf > 0 else 0.0
+    gaps["transient_freq_structure"] = {
+        "value": float(summed[k] / m),
+        "expected": 1.0,
+        "spread": float(1 / np.sqrt(m)),
+        "z": _z_from_p(p),
+        "where": f"transients, periodogram peak at {f[k] / 1e6:.3g} MHz",
+    }
+    return gaps, rn
+
+
+def _tcut_gaps(tau, tau_u, lines, t_cuts, det, gd, m: int) -> dict:
+    """tau and A against t_cut (nested fits: var(x_last - x_first) = var_last - var_first)."""
+    gaps = {}
+    d = tau[:, -1] - tau[:, 0]
+    ud = np.sqrt(np.maximum(tau_u[:, -1] ** 2 - tau_u[:, 0] ** 2, 1e-6 * tau_u[:, -1] ** 2))
+    zt = d / ud
+    i = int(np.argmax(np.abs(zt)))
+    gaps["tau_tcut"] = {
+        "value": float(np.median(d / tau[:, 0] / (t_cuts[-1] - t_cuts[0]))),
+        "unit": "1/s",
+        "expected": 0.0,
+        "z": _z_from_chi2(float(zt @ zt), m),
+        "where": f"tau({t_cuts[-1] * 1e6:g} us) - tau({t_cuts[0] * 1e6:g} us), largest at "
+        f"{_region(det[i], gd)} ({zt[i]:+.1f} sigma)",
+    }
+    a0, a1 = lines[0].value("line_area"), lines[-1].value("line_area")
+    u0, u1 = lines[0].stderr("line_area"), lines[-1].stderr("line_area")
+    ua = np.sqrt(max(abs(u1**2 - u0**2), 1e-4 * u1**2))
+    gaps["area_tcut"] = {
+        "value": float((a1 - a0) / a0),
+        "expected": 0.0,
+        "z": float(abs(a1 - a0) / ua),
+        "where": f"A({t_cuts[-1] * 1e6:g} us)/A({t_cuts[0] * 1e6:g} us) - 1",
+    }
+    return gaps
+
+
+def _spectrum_gaps(lf, det, gd, t_cuts) -> dict:
+    """Spectrum residuals at the first t_cut: chi2 (core and wings) and the strongest sinusoid."""
+    gaps = {}
+    rz = lf.residuals_norm
+    core = np.abs(det) < 2 * gd
+    chi_core, chi_wing = float(rz[core] @ rz[core]), float(rz[~core] @ rz[~core])
+    gaps["spectrum_chi2"] = {
+        "value": lf.chi2 / lf.dof,
+        "expected": 1.0,
+        "spread": float(np.sqrt(2.0 / lf.dof)),
+        "z": _z_from_chi2(lf.chi2, lf.dof),
+        "where": f"spectrum at t_cut {t_cuts[0] * 1e6:g} us: chi2 core (|detuning| < "
+        f"{2 * gd / 1e6:.0f} MHz) {chi_core:.1f} over {int(core.sum())} points, wings "
+        f"{chi_wing:.1f} over {int((~core).sum())}",
+    }
+    from scipy.signal import lombscargle
+
+    order = np.argsort(det)
+    periods = np.geomspace(2.5 * np.median(np.diff(det[order])), np.ptp(det), 200)
+    zz = rz - rz.mean()
+    ls = lombscargle(det, zz, 2 * np.pi / periods) / max(float(zz @ zz) / zz.size, 1e-300)
+    kk = int(np.argmax(ls))
+    # normalised Lomb-Scargle power of white noise ~ Exp(1); about n/2 independent periods
+    p_ls = -np.expm1((det.size / 2) * np.log1p(-min(np.exp(-ls[kk]), 1 - 1e-16)))
+    gaps["spectrum_structure"] = {
+        "value": float(ls[kk]),
+        "expected": 1.0,
+        "z": _z_from_p(p_ls),
+        "where": f"spectrum residuals, strongest sinusoid period {periods[kk] / 1e9:.3g} GHz; "
+        f"largest residual at {_region(det[int(np.argmax(np.abs(rz)))], gd)}",
+    }
+    return gaps
+
+
+def _reference_gaps(beat, ref, line, t_cuts) -> dict:
+    """The beat note's chi2 and the CRDS-CMDS gap A/A_ref - 1."""
+    gaps = {}
+    a0, u0 = line.value("line_area"), line.stderr("line_area")
+    if beat is not None:
+        gaps["beat_chi2"] = {
+            "value": beat["chi2"] / beat["dof"],
+            "expected": 1.0,
+            "spread": float(np.sqrt(2.0 / beat["dof"])),
+            "z": _z_from_chi2(beat["chi2"], beat["dof"]),
+            "where": "beat note, largest residual at "
+            f"{beat['f_hz'][int(np.argmax(np.abs(beat['resid'])))] / 1e6:.3g} MHz",
+        }
+    if ref is not None:
+        ar, ur = ref.value("line_area"), ref.stderr("line_area")
+        r = a0 / ar
+        u = r * np.hypot(u0 / a0, ur / ar)
+        gaps["crds_cmds"] = {
+            "value": float(r - 1),
+            "u": float(u),
+            "expected": 0.0,
+            "z": float(abs(r - 1) / u),
+            "where": f"A/A_ref - 1 at t_cut {t_cuts[0] * 1e6:g} us",
+        }
+    return gaps
+
+
+def evaluate(
+    bundle, config, state: ModelState, t_cuts=DISCOVERY_T_CUTS, tau_start=None
+) -> Evaluation:
+    """Fit every block of ``config`` under ``state`` and compute the gap metrics."""
+    rd = config.ringdowns
+    t_cuts = np.asarray(t_cuts, float)
+    good = np.nonzero(~np.asarray(rd.clipped))[0]
+    m, c = good.size, t_cuts.size
+    rows_of = np.repeat(good, c)
+    tcr = np.tile(t_cuts, m)
+    spec = state.spec()
+    res = fit_transient_rows(
+        rd, tcr, rows_of, spec, None if tau_start is None else np.repeat(tau_start, c)
+    )
+    tau = res.tau_s.reshape(m, c)
+    tau_u = res.tau_u_s.reshape(m, c)
+    first = np.arange(m) * c
+    chi2_t = float(res.chi2[first].sum())
+    n_t = int(res.n_used[first].sum())
+    gd = doppler_of(bundle.sample)
+    nu = np.asarray(rd.nu_hz, float)[good]
+    det = nu - bundle.sample.nu0_hz
+    lines = [fit_lines(bundle, config, state.model, nu, tau[:, j], tau_u[:, j]) for j in range(c)]
+    ref = fit_cmds(bundle, config, state.model, lines[0])
+    beat = beat_block(config, state)
+    gaps, rn = _transient_gaps(rd, res, first, spec, t_cuts, det, gd, m)
+    gaps.update(_tcut_gaps(tau, tau_u, lines, t_cuts, det, gd, m))
+    lf = lines[0]
+    gaps.update(_spectrum_gaps(lf, det, gd, t_cuts))
+    gaps.update(_reference_gaps(beat, ref, lf, t_cuts))
+    block = {"transients": (chi2_t, n_t), "spectrum": (lf.chi2, lf.n)}
+    if beat is not None:
+        block["beat"] = (beat["chi2"], beat["n"])
+    return Evaluation(
+        state=state,
+        t_cuts=t_cuts,
+        good=good,
+        tau=tau,
+        tau_u=tau_u,
+        block=block,
+        lines=lines,
+        reference=ref,
+        gaps=gaps,
+        resid_first=rn,
+        detuning=det,
+        beat=beat,
+        dt_s=float(rd.dt_s),
+    )
+
+
+# --------------------------------------------------------------------------- candidates
+
+
+@dataclass
+class Candidate:
+    effect: str
+    evidence: float
+    delta_chi2: float
+    k: int
+    n: int
+    block: str
+    params: dict  # name -> (value, u, unit)
+    state: ModelState | None
+    note: str = ""
+
+
+def _fail(effect, note):
+    return Candidate(effect, -np.inf, 0.0, 0, 0, "", {}, None, note)
+
+
+_CAL_CACHE: dict = {}
+
+
+def _calibration(config, window, t_cuts):
+    """H calibration (beat note + refinement of f_c with ``window``), cached per configuration."""
+    key = (id(config), window, tuple(t_cuts))
+    if key not in _CAL_CACHE or _CAL_CACHE[key][0] is not config:
+        if len(_CAL_CACHE) > 16:
+            _CAL_CACHE.clear()
+        # on a flat beat note (no chain) the refinement's scaling divides 0/0 before it fails;
+        # the failure itself is reported by the caller, the warnings would only be noise
+        with np.errstate(invalid="ignore", divide="ignore"):
+            _CAL_CACHE[key] = (config, calibrate(config, t_cuts_s=tuple(t_cuts), window=window))
+    return _CAL_CACHE[key][1]
+
+
+def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Candidate:
+    """A transient-level effect, scored on the transient block.
+
+    Its shared parameters are fitted over every transient at the first t_cut.
+    """
+    st = ev.state
+    model = st.model
+    rd = config.ringdowns
+    m = ev.good.size
+    tc0 = np.full(m, ev.t_cuts[0])
+    chi2_t, n_t = ev.block["transients"]
+    base = st.spec()
+    try:
+        params, res, cov = optimise_shared(
+            effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first, with_cov=with_cov
+        )
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
+        return _fail(effect, f"fit failed: {exc}")
+    k = len(SHARED[effect]) + (2 * m if effect == "mode_beating" else 0)
+    dchi2 = chi2_t - float(res.chi2.sum())
+    units = {s[0]: s[1] for s in SHARED[effect]}
+    pu = {}
+    for i, (name, v) in enumerate(params.items()):
+        u = float(np.sqrt(cov[i, i])) if cov is not None else float("nan")
+        pu[name] = (v, u, units[name])
+    new = ModelState(
+        model.plus(effect),
+        {**st.shared, effect: params},
+        {**st.shared_u, effect: {n: pu[n][1] for n in pu}},
+        st.calibration,
+    )
+    return Candidate(
+        effect,
+        dchi2 - k * np.log(n_t),
+        dchi2,
+        k,
+        n_t,
+        "transients",
+        pu,
+        new,
+        "per-transient beating amplitudes counted" if effect == "mode_beating" else "",
+    )
+
+
+def _try_chain_effect(config, ev: Evaluation, effect, t_cuts) -> Candidate:
+    """H (transfer_function) or the extinction window (window_history).
+
+    A new calibration, the transients refitted, scored on the transients (and the beat note for
+    H).
+    """
+    st = ev.state
+    model = st.model
+    rd = config.ringdowns
+    tc0 = np.full(ev.good.size, ev.t_cuts[0])
+    chi2_t, n_t = ev.block["transients"]
+    if effect == "window_history" and "transfer_function" not in model.effects:
+        return _fail(effect, "needs transfer_function in the model")
+    new_model = model.plus(effect)
+    try:
+        cal = _calibration(config, new_model.window, t_cuts)
+    except (AnalysisError, RuntimeError, ValueError) as exc:
+        return _fail(effect, f"calibration failed: {exc}")
+    new = ModelState(new_model, dict(st.shared), dict(st.shared_u), cal)
+    if effect == "transfer_function":
+        b_old, b_new = ev.beat, beat_block(config, new)
+        if b_old is None or b_new is None:
+            return _fail(effect, "no beat-note measurement")
+        ev_beat = b_old["chi2"] - b_new["chi2"] - (b_new["k"] - b_old["k"]) * np.log(b_new["n"])
+        if ev_beat < 0:
+            # the beat note measures H directly (0.15 % noise): if it does not prefer a chain
+            # over a flat response, an H fitted to it is noise, and its extinction grid can be
+            # arbitrarily long; the transients are not refitted with it
+            return Candidate(
+                effect,
+                ev_beat,
+                b_old["chi2"] - b_new["chi2"],
+                b_new["k"] - b_old["k"],
+                b_new["n"],
+                "beat",
+                {},
+                None,
+                "the beat note prefers a flat |H| (beat-note block only)",
+            )
+    try:
+        res = fit_transient_rows(rd, tc0, ev.good, new.spec(), ev.tau[:, 0])
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return _fail(effect, f"fit failed: {exc}")
+    dchi2 = chi2_t - float(res.chi2.sum())
+    n = n_t
+    k = 0
+    pu = {}
+    if effect == "transfer_function":
+        b_old = ev.beat
+        b_new = beat_block(config, new)
+        if b_old is None or b_new is None:
+            return _fail(effect, "no beat-note measurement")
+        dchi2 += b_old["chi2"] - b_new["chi2"]
+        n += b_new["n"]
+        k = b_new["k"] - b_old["k"]
+        p = cal.params
+        su = cal.beat.stderr
+        for name in ("f_c_hz", "a_r", "f_r_hz", "gamma_r"):
+            u = su.get(name, float("nan"))
+            if cal.refined is not None and name in cal.refined.stderr:
+                u = cal.refined.stderr[name]
+            pu[name] = (getattr(p, name), float(u), "Hz" if name.endswith("_hz") else "1")
+    return Candidate(
+        effect,
+        dchi2 - k * np.log(n),
+        dchi2,
+        k,
+        n,
+        "transients" + ("+beat" if k else ""),
+        pu,
+        new,
+        "H from the beat note, f_c refined on ring-downs",
+    )
+
+
+def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
+    """A spectrum-level effect: the line refitted with it, scored on the spectrum block."""
+    st = ev.state
+    model = st.model
+    rd = config.ringdowns
+    new_model = model.plus(effect)
+    lf_old = ev.lines[0]
+    nu = np.asarray(rd.nu_hz, float)[ev.good]
+    try:
+        lf = fit_lines(bundle, config, new_model, nu, ev.tau[:, 0], ev.tau_u[:, 0])
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        return _fail(effect, f"fit failed: {exc}")
+    dchi2 = lf_old.chi2 - lf.chi2
+    k = lf.k - lf_old.k
+    new_names = [n for n in lf.names if n not in lf_old.names]
+    units = {
+        "gamma2_hz": "Hz",
+        "nu_vc_hz": "Hz",
+        "etalon_amplitude_per_m": "1/m",
+        "etalon_period_hz": "Hz",
+        "etalon_phase_rad": "rad",
+        "neighbour_offset_hz": "Hz",
+        "neighbour_ratio": "1",
+    }
+    pu = {n: (lf.value(n), lf.stderr(n), units.get(n, "")) for n in new_names}
+    new = ModelState(new_model, dict(st.shared), dict(st.shared_u), st.calibration)
+    return Candidate(effect, dchi2 - k * np.log(lf.n), dchi2, k, lf.n, "spectrum", pu, new)
+
+
+def try_candidate(
+    bundle, config, ev: Evaluation, effect, t_cuts=DISCOVERY_T_CUTS, with_cov: bool = False
+) -> Candidate:
+    """Fit one extension on top of the evaluated state and score it (Delta BIC on its block).
+
+    The shared parameters' covariance (curvature of the profiled chi2, a dozen more fits) is
+    computed only with ``with_cov``: discovery asks for it for the effect it adds.
+    """
+    if effect in TRANSIENT_LEVEL:
+        return _try_transient_effect(config, ev, effect, with_cov)
+    if effect in ("transfer_function", "window_history"):
+        return _try_chain_effect(config, ev, effect, t_cuts)
+    return _try_spectrum_effect(bundle, config, ev, effect)
+
+
+# --------------------------------------------------------------------------- the loop
+
+
+@dataclass
+class DiscoveryResult:
+    config: str
+    start: ExperimentModel
+    steps: list
+    effects_added: list
+    evaluations: list
+    candidates: list  # per round: list of Candidate
+    threshold: float
+    seconds: float
+
+    def to_json(self) -> dict:
+        def gaps(g):
+            return {
+                k: {
+                    kk: (float(vv) if isinstance(vv, (int, float, np.floating)) else vv)
+                    for kk, vv in v.items()
+                }
+                for k, v in g.items()
+            }
+
+        rounds = []
+        for cands in self.candidates:
+            rounds.append(
+                [
+                    {
+                        "effect": c.effect,
+                        "evidence": _finite(c.evidence),
+                        "delta_chi2": _finite(c.delta_chi2),
+                        "k": c.k,
+                        "n": c.n,
+                        "block": c.block,
+                        "note": c.note,
+                    }
+                    for c in cands
+                ]
+            )
+        return {
+            "config": self.config,
+            "start": sorted(self.start.effects),
+            "start_label": self.start.label(),
+            "final_label": self.evaluations[-1].state.model.label(),
+            "threshold_delta_bic": self.threshold,
+            "steps": [
+                {**s, "gaps_before": gaps(s["gaps_before"]), "gaps_after": gaps(s["gaps_after"])}
+                for s in self.steps
+            ],
+            "effects_added": list(self.effects_added),
+            "final_gaps": gaps(self.evaluations[-1].gaps),
+            "candidates_per_round": rounds,
+            "seconds": self.seconds,
+        }
+
+
+def _finite(x):
+    return float(x) if np.isfinite(x) else None
+
+
+def _start_state(bundle, config, start, t_cuts) -> ModelState:
+    """The declared start model, its calibration, its transient extensions fitted on the data."""
+    model = start if isinstance(start, ExperimentModel) else parse_model(start)
+    state = ModelState(model)
+    if model.method == "tf-crds":
+        state.calibration = _calibration(config, model.window, t_cuts)
+    for eff in model.effects & set(TRANSIENT_LEVEL):
+        # a declared transient extension starts with its parameters fitted on the data
+        ev0 = evaluate(
+            bundle,
+            config,
+            ModelState(
+                ExperimentModel(model.effects - {eff}), dict(state.shared), {}, state.calibration
+            ),
+            t_cuts,
+        )
+        c = try_candidate(bundle, config, ev0, eff, t_cuts, with_cov=True)
+        state.shared[eff] = {k: v[0] for k, v in c.params.items()}
+        state.shared_u[eff] = {k: v[1] for k, v in c.params.items()}
+    return state
+
+
+def _add_shared_uncertainty(config, ev: Evaluation, best: Candidate) -> None:
+    """The chosen transient effect's parameter uncertainties (profiled chi2 curvature)."""
+    if best.effect not in TRANSIENT_LEVEL:
+        return
+    cov = shared_covariance(
+        best.effect,
+        config.ringdowns,
+        np.full(ev.good.size, ev.t_cuts[0]),
+        ev.good,
+        ev.state.spec(),
+        {k: v[0] for k, v in best.params.items()},
+        ev.tau[:, 0],
+    )
+    for i, k in enumerate(best.params):
+        u = float(np.sqrt(cov[i, i])) if cov is not None else float("nan")
+        best.params[k] = (best.params[k][0], u, best.params[k][2])
+    best.state.shared_u[best.effect] = {k: v[1] for k, v in best.params.items()}
+
+
+def _step_record(best: Candidate, runner, ev: Evaluation, new_ev: Evaluation) -> dict:
+    """One step of ``discovery.json``: the effect added, its evidence, the gaps before and after."""
+    return {
+        "effect": best.effect,
+        "evidence": float(best.evidence),
+        "delta_chi2": float(best.delta_chi2),
+        "k": best.k,
+        "n": best.n,
+        "block": best.block,
+        "params": {k: {"value": v[0], "u": v[1], "unit": v[2]} for k, v in best.params.items()},
+        "runner_up": None
+        if runner is None
+        else {"effect": runner.effect, "evidence": _finite(runner.evidence)},
+        "gaps_before": ev.gaps,
+        "gaps_after": new_ev.gaps,
+    }
+
+
+def discover(
+    bundle,
+    config_name,
+    start: ExperimentModel | str | None = None,
+    t_cuts=DISCOVERY_T_CUTS,
+    threshold: float = DEFAULT_THRESHOLD,
+    max_steps: int = 6,
+    progress=None,
+) -> DiscoveryResult:
+    """Greedy forward selection of missing effects on one configuration (see the module doc).
+
+    ``progress`` is an optional callable taking one line of text.
+    """
+    t0 = time.perf_counter()
+    say = progress or (lambda s: None)
+    if config_name not in bundle.configs:
+        raise ValueError(
+            f"no configuration {config_name!r} in the bundle (it has {list(bundle.configs)})"
+        )
+    config = bundle.configs[config_name]
+    state = _start_state(bundle, config, start, t_cuts)
+    model = state.model
+    ev = evaluate(bundle, config, state, t_cuts)
+    evaluations, steps, added, rounds = [ev], [], [], []
+    say(f"start {model.label()}: " + ", ".join(f"{k} z={v['z']:.1f}" for k, v in ev.gaps.items()))
+    for _ in range(max_steps):
+        cands = []
+        for eff in CANDIDATES:
+            if eff in ev.state.model.effects:
+                continue
+            c = try_candidate(bundle, config, ev, eff, t_cuts)
+            cands.append(c)
+            say(
+                f"  {eff:20s} evidence {c.evidence:12.1f} (dchi2 {c.delta_chi2:.1f}, k {c.k}) "
+                f"{c.note}"
+            )
+        cands.sort(key=lambda c: -c.evidence if np.isfinite(c.evidence) else np.inf)
+        rounds.append(cands)
+        best = cands[0] if cands else None
+        if best is None or not np.isfinite(best.evidence) or best.evidence < threshold:
+            say("no candidate passes the threshold: stop")
+            break
+        _add_shared_uncertainty(config, ev, best)
+        new_ev = evaluate(bundle, config, best.state, t_cuts, tau_start=ev.tau[:, 0])
+        runner = cands[1] if len(cands) > 1 else None
+        steps.append(_step_record(best, runner, ev, new_ev))
+        added.append(best.effect)
+        say(
+            f"added {best.effect} (evidence {best.evidence:.1f}): "
+            + ", ".join(f"{k} z={v['z']:.1f}" for k, v in new_ev.gaps.items())
+        )
+        ev = new_ev
+        evaluations.append(ev)
+    return DiscoveryResult(
+        config=config_name,
+        start=model,
+        steps=steps,
+        effects_added=added,
+        evaluations=evaluations,
+        candidates=rounds,
+        threshold=threshold,
+        seconds=time.perf_counter() - t0,
+    )
