@@ -1,7 +1,7 @@
 """Shared fixtures.
 
 ``good_bundle_path`` is a small valid measurement bundle written with raw h5py straight
-from /work/shared/FORMAT.md (not with bayes_tfcrds.bundle.save_bundle), so the reader is
+from /work/shared/FORMAT.md (not with bayes_tfcrds.bundle.writer.save_bundle), so the reader is
 checked against the contract rather than against its own writer. Contents:
 
 * ``D1``: every optional item: transfer_function (with b12_u_v, i1_v as (n,), i2_v as a

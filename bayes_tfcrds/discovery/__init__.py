@@ -3,5 +3,5 @@
 Compare a model of the experiment with every data block, try candidate effects as model extensions
 and add what the evidence supports.
 
-May import: core, output, bundle, physics, simulate, fit.
+May import: core, output, bundle, physics, fit.
 """

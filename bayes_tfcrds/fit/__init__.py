@@ -4,5 +4,5 @@ The beat-note fit of H, ring-down decay times (CRDS, TF-CRDS), the Appendix B re
 many transients, the H calibration that combines them, spectra, line-profile fits and the line
 analysis of one configuration.
 
-May import: core, output, bundle, physics.
+May import: core, physics (bundle records are read by their fields, never imported).
 """

@@ -119,7 +119,7 @@ class LineModel:
     @property
     def names(self) -> tuple:
         names = ["line_area", "position_offset_hz", *self.shape_free]
-        for i, slope in enumerate(self.slopes):
+        for i, (_, slope) in enumerate(zip(self.kinds, self.slopes)):
             names.append(f"baseline{i}")
             if slope:
                 names.append(f"slope{i}")

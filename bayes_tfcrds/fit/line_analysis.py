@@ -260,8 +260,8 @@ def analyse_line(
         line_fit=lf,
         reference_fit=fit_reference(bundle, config, profile_name),
         spectrum=spec,
-        number_density_m3=number_density(
-            sample.pressure_pa, sample.temperature_k, sample.mole_fraction
+        number_density_m3=float(
+            number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction)
         ),
         n_points=int(spec.nu_hz.size),
         clipped_points=int(np.sum(fits.clipped)),

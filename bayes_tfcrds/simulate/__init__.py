@@ -2,5 +2,5 @@
 
 Campaigns of ring-downs, beat notes and CMDS with a known truth and injectable effects.
 
-May import: core, output, bundle, physics.
+May import: core, bundle, physics.
 """

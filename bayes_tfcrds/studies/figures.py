@@ -13,10 +13,10 @@ from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.physics.transfer_function import transfer_function
 
 
-def _figure_transfer_function(plt, rep, name, cfg, cal, tf, longest, tc) -> None:
+def _figure_transfer_function(plt, rep, name, cfg, cal, tf, extremes, tc) -> None:
     """Letter Fig. 2a: beat-note |H|, Eq. 2 fitted to it and refined, ring-down spectra."""
     rd = cfg.ringdowns
-    i_long, i_short = longest
+    i_long, i_short = extremes
     fig, ax = plt.subplots(figsize=(7.5, 4.2))
     t_data = cfg.transfer_function
     f = np.asarray(t_data.f_hz)
@@ -71,9 +71,9 @@ def _figure_transfer_function(plt, rep, name, cfg, cal, tf, longest, tc) -> None
     )
 
 
-def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, longest, tc) -> None:
+def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> None:
     """Letter Fig. 2b: the longest and shortest ring-downs with CRDS and TF-CRDS residuals."""
-    i_long, i_short = longest
+    i_long, i_short = extremes
     t = rd.time_s
     fig, axes = plt.subplots(
         3, 1, figsize=(7.5, 6.5), sharex=True, gridspec_kw={"height_ratios": [2, 1, 1]}
@@ -186,9 +186,9 @@ def letter_figures(study, bundle, truth, rep, out=None, progress=False, pool=Non
         rd = cfg.ringdowns
         crds = fit_ringdowns(rd, [tc], "crds", keep_residuals=True)
         tf = fit_ringdowns(rd, [tc], "tf-crds", cal.params, study.windows[0], keep_residuals=True)
-        longest = int(np.nanargmax(tf.tau_s[:, 0])), int(np.nanargmin(tf.tau_s[:, 0]))
-        _figure_transfer_function(plt, rep, name, cfg, cal, tf, longest, tc)
-        _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, longest, tc)
+        extremes = int(np.nanargmax(tf.tau_s[:, 0])), int(np.nanargmin(tf.tau_s[:, 0]))
+        _figure_transfer_function(plt, rep, name, cfg, cal, tf, extremes, tc)
+        _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc)
         rel, fc, ft = _figure_spectra(plt, rep, name, study, bundle, crds, tf, gd, tc)
         numbers[name] = {
             "tau_difference_pct_min": float(np.nanmin(rel)),

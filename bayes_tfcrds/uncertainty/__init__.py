@@ -3,5 +3,5 @@
 Propagation of H into tau and A, the posteriors the budget samples, the GUM budget of A, S and
 A/A_ref (run_budget), and its output files.
 
-May import: core, output, bundle, physics, fit, inference.
+May import: core, output, physics, fit, inference.
 """

@@ -92,7 +92,7 @@ class BudgetResult:
     summary: dict
     budget_a: Budget
     budget_s: Budget
-    budget_ratio: Budget
+    budget_ratio: Budget | None
     samples: dict = field(repr=False)
     runs: dict = field(repr=False)
     tau_table: list = field(default_factory=list, repr=False)
@@ -272,9 +272,9 @@ def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
 
 
 def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> _HSensitivity:
-    """Step 4.
+    """Step 4: the sensitivity of A to H.
 
-    DA/dtheta_H through every tau (implicit-function derivatives and the line fit's gain) and, to
+    dA/dtheta_H through every tau (implicit-function derivatives and the line fit's gain) and, to
     second order, the Hessian of A from full refits at +-1 sd of each H parameter (a 1-sigma H draw
     bends A by ~2 % of u(A) beyond the tangent).
     """

@@ -38,7 +38,11 @@ def n_walkers(ndim: int) -> int:
 
 
 def h_posterior(config, options, rng, backend, progress):
-    """Beat-note MCMC, then the refinement update of ``refine_free``; returns draws (n, 4)."""
+    """Beat-note MCMC, then the refinement update of ``refine_free``.
+
+    Returns (beat-note fit, refinement or None, H*, H draws (n, 4), sampler run or None, the draw's
+    decomposition into beat-note and refined parts).
+    """
     beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
     tfd = config.transfer_function
     post = BeatNotePosterior(

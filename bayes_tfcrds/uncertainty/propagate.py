@@ -9,8 +9,9 @@ parameters theta gives (implicit function theorem)
 
 so a posterior draw delta_theta moves tau by S delta_theta (S: n_transients x n_theta). The
 line parameters follow the CRDS spectrum through the least-squares gain K = (J^T W J)^-1 J^T W
-of the line fit. Both maps are first order; :func:`bayes_tfcrds.uncertainty.check_linearity`
-compares them with full refits at draws from the posterior tails.
+of the line fit. Both maps are first order; the budget adds the curvature of A from full refits
+(``line_budget._h_sensitivity``), and ``benchmarks/run.py`` compares the propagated shifts with
+full refits.
 """
 
 from __future__ import annotations
