@@ -344,19 +344,8 @@ def _common(sp, seed=0, note=""):
     return sp
 
 
-def _add_validate(sub) -> None:
-    """The ``validate`` command's options."""
-    sp = _common(
-        sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
-        note=" (validate draws no random numbers)",
-    )
-    sp.add_argument("file", help="measurement bundle (HDF5)")
-    sp.set_defaults(func=cmd_validate)
-
-
-def _add_fit(sub) -> None:
-    """The ``fit`` command's options."""
-    sp = _common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
+def _bundle_and_model(sp) -> None:
+    """The bundle, its configuration, and the ring-down model (method and window)."""
     sp.add_argument("file")
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument(
@@ -372,6 +361,32 @@ def _add_fit(sub) -> None:
         help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the "
         "letter's)",
     )
+
+
+def _profile_option(sp) -> None:
+    """The line profile fitted to the spectrum."""
+    sp.add_argument(
+        "--profile",
+        choices=["voigt", "sdvp", "rautian", "qsdhcp"],
+        default="qsdhcp",
+        help="line profile fitted to the spectrum",
+    )
+
+
+def _add_validate(sub) -> None:
+    """The ``validate`` command's options."""
+    sp = _common(
+        sub.add_parser("validate", help="check a measurement bundle against FORMAT.md"),
+        note=" (validate draws no random numbers)",
+    )
+    sp.add_argument("file", help="measurement bundle (HDF5)")
+    sp.set_defaults(func=cmd_validate)
+
+
+def _add_fit(sub) -> None:
+    """The ``fit`` command's options."""
+    sp = _common(sub.add_parser("fit", help="fit ring-down decay times (CRDS or TF-CRDS)"))
+    _bundle_and_model(sp)
     sp.add_argument(
         "--tcut",
         type=_floats,
@@ -419,28 +434,9 @@ def _add_linefit(sub) -> None:
     sp = _common(
         sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS")
     )
-    sp.add_argument("file")
-    sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument(
-        "--method",
-        choices=["crds", "tf-crds"],
-        default="tf-crds",
-        help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)",
-    )
-    sp.add_argument(
-        "--window",
-        choices=["extinction", "letter"],
-        default="extinction",
-        help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the "
-        "letter's)",
-    )
+    _bundle_and_model(sp)
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
-    sp.add_argument(
-        "--profile",
-        choices=["voigt", "sdvp", "rautian", "qsdhcp"],
-        default="qsdhcp",
-        help="line profile fitted to the spectrum",
-    )
+    _profile_option(sp)
     sp.add_argument(
         "--shape-bounds",
         choices=["free", "physical"],
@@ -460,28 +456,9 @@ def _add_budget(sub) -> None:
     sp = _common(
         sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS")
     )
-    sp.add_argument("file")
-    sp.add_argument("--config", help="configuration name, e.g. D2")
-    sp.add_argument(
-        "--method",
-        choices=["crds", "tf-crds"],
-        default="tf-crds",
-        help="crds: pure exponential; tf-crds: exponential through the detection chain's H(f)",
-    )
-    sp.add_argument(
-        "--window",
-        choices=["extinction", "letter"],
-        default="extinction",
-        help="history before t = 0 in the TF-CRDS model: extinction (exact) or letter (the "
-        "letter's)",
-    )
+    _bundle_and_model(sp)
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
-    sp.add_argument(
-        "--profile",
-        choices=["voigt", "sdvp", "rautian", "qsdhcp"],
-        default="qsdhcp",
-        help="line profile fitted to the spectrum",
-    )
+    _profile_option(sp)
     sp.add_argument(
         "--steps",
         type=int,

@@ -17,6 +17,9 @@ import collections
 import sys
 from pathlib import Path
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the tests' helpers
+from tests.import_graph import strongly_connected  # noqa: E402
+
 
 def modules(root: Path) -> dict:
     """Dotted module name -> path, for every .py file of the package under ``root``."""
@@ -75,34 +78,8 @@ def depth(edges: dict, mods: dict) -> int:
 
 
 def cycles(edges: dict, mods: dict) -> list:
-    """Strongly connected components of more than one module (Tarjan)."""
-    index, low, stack, on, out = {}, {}, [], set(), []
-
-    def visit(v):
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        on.add(v)
-        for w in edges.get(v, ()):
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                out.append(sorted(comp))
-
-    for v in mods:
-        if v not in index:
-            visit(v)
-    return out
+    """Groups of modules that import each other (Tarjan, as the architecture test)."""
+    return strongly_connected({m: sorted(edges.get(m, ())) for m in mods})
 
 
 def code_lines(src_lines: list, node) -> int:

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.import_graph import strongly_connected
+
 PACKAGE = Path(__file__).resolve().parents[1] / "bayes_tfcrds"
 #: lowest first; a module may import from its own layer and the layers before it
 LAYERS = (
@@ -127,38 +129,12 @@ def test_no_private_name_crosses_a_subpackage(module):
 
 
 def _cycles(graph: dict) -> list:
-    """Strongly connected components with more than one module (Tarjan)."""
+    """Import cycles of the package (groups of modules that import each other)."""
     edges = {
         m: sorted({t for _, t, _ in imps if t in graph and t != m})
         for m, (_, imps) in graph.items()
     }
-    index, low, stack, on, out = {}, {}, [], set(), []
-
-    def visit(v):
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        on.add(v)
-        for w in edges[v]:
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            comp = []
-            while True:
-                w = stack.pop()
-                on.discard(w)
-                comp.append(w)
-                if w == v:
-                    break
-            if len(comp) > 1:
-                out.append(sorted(comp))
-
-    for v in sorted(edges):
-        if v not in index:
-            visit(v)
-    return out
+    return strongly_connected(edges)
 
 
 def test_no_import_cycle():

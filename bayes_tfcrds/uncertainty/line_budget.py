@@ -242,12 +242,12 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
         inp.config.ringdowns, t_cuts, method=options.method, tf=h_star, window=options.window
     )
     j0 = int(np.nonzero(np.isclose(t_cuts, options.t_cut_s))[0][0])
-    area_by_tcut = {}
-    for j, tc in enumerate(t_cuts):
-        sp = crds_spectrum(fits.nu_hz, fits.tau_s[:, j], fits.tau_u_s[:, j])
-        area_by_tcut[float(tc)] = fit_line([sp], options.profile, gd, nu_ref).line_area
-    spec = crds_spectrum(fits.nu_hz, fits.tau_s[:, j0], fits.tau_u_s[:, j0])
-    lsq = fit_line([spec], options.profile, gd, nu_ref)
+    spectra = [
+        crds_spectrum(fits.nu_hz, fits.tau_s[:, j], fits.tau_u_s[:, j]) for j in range(t_cuts.size)
+    ]
+    line_fits = [fit_line([sp], options.profile, gd, nu_ref) for sp in spectra]
+    area_by_tcut = {float(tc): lf.line_area for tc, lf in zip(t_cuts, line_fits)}
+    spec, lsq = spectra[j0], line_fits[j0]
     alt = fit_line([spec], options.alt_profile, gd, nu_ref)
     return _DecayTimes(fits, t_cuts, j0, area_by_tcut, spec, lsq, alt)
 

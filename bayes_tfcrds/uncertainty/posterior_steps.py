@@ -37,6 +37,25 @@ def n_walkers(ndim: int) -> int:
     return max(3 * ndim, 16)
 
 
+def _sample(post, p0, names, ndim, rng, options, backend, progress, label):
+    """emcee on ``post`` with the budget's ensembles, walkers, lengths and moves."""
+    return run_ensembles(
+        post,
+        p0,
+        names,
+        rng,
+        n_ensembles=options.n_ensembles,
+        n_walkers=n_walkers(ndim),
+        n_steps=options.n_steps,
+        max_steps=options.max_steps,
+        vectorize=True,
+        backend_path=backend,
+        progress=progress,
+        label=label,
+        moves=sampler_moves(),
+    )
+
+
 def h_posterior(config, options, rng, backend, progress):
     """Beat-note MCMC, then the refinement update of ``refine_free``.
 
@@ -67,20 +86,8 @@ def h_posterior(config, options, rng, backend, progress):
             nat, 0.5 * (beat.cov + beat.cov.T), size=options.n_h_draws, method="eigh"
         )[:, : len(BEAT_FREE)]
     else:
-        run = run_ensembles(
-            post,
-            p0,
-            post.sample_names,
-            rng,
-            n_ensembles=options.n_ensembles,
-            n_walkers=n_walkers(x0.size),
-            n_steps=options.n_steps,
-            max_steps=options.max_steps,
-            vectorize=True,
-            backend_path=backend,
-            progress=progress,
-            label="H | beat note",
-            moves=sampler_moves(),
+        run = _sample(
+            post, p0, post.sample_names, x0.size, rng, options, backend, progress, "H | beat note"
         )
         flat = run.flat()
         pick = rng.choice(flat.shape[0], size=min(options.n_h_draws, flat.shape[0]), replace=False)
@@ -186,18 +193,4 @@ def line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress
             x[over, i2] = cap_w[over] * r.uniform(0.1, 0.9, int(over.sum()))
         return x
 
-    return run_ensembles(
-        post,
-        p0,
-        lsq.names,
-        rng,
-        n_ensembles=options.n_ensembles,
-        n_walkers=n_walkers(x0.size),
-        n_steps=options.n_steps,
-        max_steps=options.max_steps,
-        vectorize=True,
-        backend_path=backend,
-        progress=progress,
-        label=label,
-        moves=sampler_moves(),
-    )
+    return _sample(post, p0, lsq.names, x0.size, rng, options, backend, progress, label)
