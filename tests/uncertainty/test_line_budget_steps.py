@@ -20,9 +20,14 @@ def test_ratio_step_is_first_order_propagation_of_a_over_a_ref():
     a_ref = rng.normal(2.0e3, 3.0, size=20000)
     bud = lb._budget_ratio(2.004e3, 4.0, a_ref)
     m, s = a_ref.mean(), a_ref.std()
-    assert bud.value == pytest.approx(2.004e3 / m, rel=1e-15)
+    assert bud.value == pytest.approx(2.004e3 / m, rel=1e-15, abs=0)
     expected = np.hypot(4.0 / m, 2.004e3 * s / m**2)
-    assert bud.combined_u == pytest.approx(expected, rel=1e-12)
+    assert bud.combined_u == pytest.approx(expected, rel=1e-12, abs=0)
+    # sensitivities d(A/A_ref)/dA = 1/A_ref and d(A/A_ref)/dA_ref = -A/A_ref^2 (signs matter as
+    # soon as the two are correlated)
+    c = [comp.sensitivity for comp in bud.components]
+    assert c[0] == pytest.approx(1 / m, rel=1e-12, abs=0)
+    assert c[1] == pytest.approx(-2.004e3 / m**2, rel=1e-12, abs=0)
     assert lb._budget_ratio(1.0, 0.1, None) is None
 
 
@@ -38,11 +43,13 @@ def test_intensity_step_sensitivities_are_those_of_a_over_n():
     bud = lb._budget_s(sample, 3.0e2, 1.5)
     s = bud.value
     c = {comp.name: comp.sensitivity for comp in bud.components}
-    assert c["line area A"] == pytest.approx(s / 3.0e2)
-    assert c["pressure p"] == pytest.approx(-s / 666.6)
-    assert c["temperature T"] == pytest.approx(s / 296.0)
+    # S is ~1e-25 cm/molecule: relative tolerances only (pytest.approx's default abs=1e-12
+    # would accept any sign)
+    assert c["line area A"] == pytest.approx(s / 3.0e2, rel=1e-12, abs=0)
+    assert c["pressure p"] == pytest.approx(-s / 666.6, rel=1e-12, abs=0)
+    assert c["temperature T"] == pytest.approx(s / 296.0, rel=1e-12, abs=0)
     rel = np.sqrt((1.5 / 3.0e2) ** 2 + (0.5 / 666.6) ** 2 + (0.1 / 296.0) ** 2)
-    assert bud.combined_u == pytest.approx(s * rel, rel=1e-12)
+    assert bud.combined_u == pytest.approx(s * rel, rel=1e-12, abs=0)
 
 
 def _run(passed):
