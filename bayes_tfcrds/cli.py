@@ -65,19 +65,25 @@ def cmd_validate(args) -> int:
 
 def cmd_fit(args) -> int:
     from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+    from bayes_tfcrds.fit.refine import tension_lines
 
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     cal = None
     try:
         if args.method == "tf-crds":
-            cal = calibrate(config, window=args.window, refine=args.h == "refined")
+            cal = calibrate(
+                config, window=args.window, refine=args.h == "refined", free=args.refine
+            )
             p = cal.params
             print(
                 f"# H: f_c={p.f_c_hz:.6g} Hz a_r={p.a_r:.6g} f_r={p.f_r_hz:.6g} Hz "
                 f"gamma_r={p.gamma_r:.4g} n_r={p.n_r:.3g} ({args.h})",
                 file=sys.stderr,
             )
+            if cal.refined is not None:
+                for line in tension_lines(cal.refined):
+                    print(f"# {line}", file=sys.stderr)
         fits = fit_config(
             config, args.tcut, method=args.method, window=args.window, calibration=cal
         )
@@ -220,13 +226,18 @@ def cmd_demo(args) -> int:
 def cmd_budget(args) -> int:
     from bayes_tfcrds.fit.h_calibration import AnalysisError
     from bayes_tfcrds.fit.line_analysis import LineFitError
+    from bayes_tfcrds.fit.refine import tension_lines
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
     from bayes_tfcrds.uncertainty.outputs import write_outputs
 
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     opts = BudgetOptions(
-        method=args.method, window=args.window, t_cut_s=args.tcut[0], profile=args.profile
+        method=args.method,
+        window=args.window,
+        t_cut_s=args.tcut[0],
+        profile=args.profile,
+        refine_free=args.refine,
     )
     if args.steps is not None or args.max_steps is not None:
         try:
@@ -257,6 +268,17 @@ def cmd_budget(args) -> int:
         )
         return 130
     print(res.budget_a.to_markdown())
+    if res.refined is not None:
+        for line in tension_lines(res.refined):
+            print(f"H refinement: {line}", file=sys.stderr)
+    form = (res.summary.get("transfer_function") or {}).get("model_form")
+    if form and form["asks_for_free_order"]:
+        print(
+            f"finding: the beat note asks for a fractional order n_r = {form['n_r_free_fit']:.3f} "
+            f"(BIC weight {form['weight_n_r_free']:.3g}); the budget keeps n_r = 2 and carries the "
+            "difference in A as the 'H model form' row",
+            file=sys.stderr,
+        )
     if not res.passed:
         print(
             f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})",
@@ -363,6 +385,31 @@ def _bundle_and_model(sp) -> None:
     )
 
 
+def _h_names(allowed):
+    def parse(text: str) -> tuple:
+        names = tuple(n.strip() for n in text.split(",") if n.strip())
+        bad = [n for n in names if n not in allowed]
+        if not names or bad:
+            raise argparse.ArgumentTypeError(
+                f"expected a comma-separated list of {', '.join(allowed)}; got {text!r}"
+            )
+        return names
+
+    return parse
+
+
+def _refine_option(sp, allowed) -> None:
+    """Which H parameters the ring-downs refine (an update of the beat note)."""
+    sp.add_argument(
+        "--refine",
+        type=_h_names(allowed),
+        default=("f_c_hz",),
+        metavar="NAMES",
+        help="H parameters the multi-ring-down fit updates, comma-separated (default f_c_hz, as "
+        f"in the letter; any of {', '.join(allowed)}); the others stay at the beat note",
+    )
+
+
 def _profile_option(sp) -> None:
     """The line profile fitted to the spectrum."""
     sp.add_argument(
@@ -400,6 +447,9 @@ def _add_fit(sub) -> None:
         default="refined",
         help="H for TF-CRDS: the beat-note fit refined on ring-downs, or the beat-note fit alone",
     )
+    from bayes_tfcrds.physics.transfer_function import PARAM_NAMES
+
+    _refine_option(sp, PARAM_NAMES)
     sp.add_argument("-o", "--output", required=True, help="CSV file to write")
     sp.set_defaults(func=cmd_fit)
 
@@ -459,6 +509,9 @@ def _add_budget(sub) -> None:
     _bundle_and_model(sp)
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
     _profile_option(sp)
+    from bayes_tfcrds.fit.h_calibration import BEAT_FREE
+
+    _refine_option(sp, BEAT_FREE)
     sp.add_argument(
         "--steps",
         type=int,

@@ -12,7 +12,12 @@ import numpy as np
 from scipy import optimize
 
 from bayes_tfcrds.core.linalg import central_jacobian, covariance_from_fisher
-from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, TFParams, transfer_function
+from bayes_tfcrds.physics.transfer_function import (
+    PARAM_NAMES,
+    SUPPORT,
+    TFParams,
+    transfer_function,
+)
 
 # --------------------------------------------------------------------------- beat-note fit
 
@@ -74,6 +79,20 @@ def _default_starts(f_hz, h_mag, variant):
                     f_c_hz=f3, a_r=a_r, f_r_hz=fr_ratio * f3, gamma_r=0.7, n_r=2.0, variant=variant
                 )
             )
+    # a weaker resonance above, near or below a fast main pole, underdamped or overdamped
+    for fr_ratio in (0.3, 3.0):
+        for a_r in (0.1, 0.5):
+            for gamma_r in (0.3, 1.0):
+                starts.append(
+                    TFParams(
+                        f_c_hz=f3,
+                        a_r=a_r,
+                        f_r_hz=fr_ratio * f3,
+                        gamma_r=gamma_r,
+                        n_r=2.0,
+                        variant=variant,
+                    )
+                )
     for fc_ratio in (1e-3, 1e-2, 1e-1):
         for a_r in (3.0, 10.0, 30.0):
             starts.append(
@@ -133,9 +152,10 @@ def fit_beat_note(
         starts = [
             replace(fixed, **{n: getattr(s, n) for n in free}, variant=variant) for s in starts
         ]
-    lo = np.where(logp, -np.inf, -0.99)
-    lo = np.append(lo, 0.0)
-    hi = np.append(np.full(len(free), np.inf), np.inf)
+    # the physical domain (SUPPORT), in the search space
+    lo = np.array([np.log(SUPPORT[n][0]) if lp else SUPPORT[n][0] for n, lp in zip(free, logp)])
+    hi = np.array([np.log(SUPPORT[n][1]) if lp else SUPPORT[n][1] for n, lp in zip(free, logp)])
+    lo, hi = np.append(lo, 0.0), np.append(hi, np.inf)
 
     def solve(x0, base, tol, nfev):
         try:
@@ -160,7 +180,7 @@ def fit_beat_note(
             np.where(logp, np.log(np.maximum(s.as_vector(free), 1e-300)), s.as_vector(free)),
             np.median(y[: max(3, len(y) // 10)]),
         )
-        x0 = np.clip(x0, lo + 1e-9, hi)
+        x0 = np.clip(x0, lo + 1e-9, hi - 1e-9)
         sol = solve(x0, s, 1e-6, 300) if len(starts) > 1 else solve(x0, s, 1e-14, 4000)
         if sol is not None:
             coarse.append((sol.cost, sol, s))

@@ -12,7 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note
-from bayes_tfcrds.fit.refine import RefinedTF, refine_transfer_function
+from bayes_tfcrds.fit.refine import HPrior, RefinedTF, refine_transfer_function
 from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns, fit_transients
 from bayes_tfcrds.physics.transfer_function import TFParams
 
@@ -94,6 +94,62 @@ def beat_note_fit(
     return min((best, alt), key=ringdown_chi2)
 
 
+@dataclass(frozen=True)
+class HModelForms:
+    """Eq. 2 with n_r = 2 (a rational, causal chain) against n_r free, judged by the beat note.
+
+    ``weight_free`` is the BIC weight of the n_r-free form, 1/(1 + exp((BIC_free - BIC_2)/2))
+    with BIC = chi2 + k ln n on the n beat-note points (Schwarz 1978): the posterior probability
+    of that form when both are a priori equally likely. ``free_fit`` is its beat-note fit.
+    """
+
+    bic_fixed: float
+    bic_free: float
+    weight_free: float
+    free_fit: TFFit | None
+
+    @property
+    def asks_for_free_order(self) -> bool:
+        """True when the beat note prefers n_r free (weight above 1/2)."""
+        return self.weight_free > 0.5
+
+
+N_R_STARTS = (2.0, 1.5, 1.0)
+
+
+def h_model_forms(config, beat: TFFit) -> HModelForms:
+    """Fit the n_r-free form from the n_r = 2 optimum ``beat`` and weigh the two forms by BIC.
+
+    The causal variant is fractional-order for n_r < 2 (n_r is searched in (0.5, 2.5)); a fit
+    that fails leaves the n_r = 2 form alone (weight 0).
+    """
+    n = len(beat.f_hz)
+
+    def bic(fit):
+        return float(fit.chi2 + (len(fit.free) + 1) * np.log(n))
+
+    fits = []
+    for n_r in N_R_STARTS:  # the order surface has local optima: a few starts below 2
+        try:
+            fits.append(
+                fit_beat_note(
+                    config.transfer_function,
+                    variant=beat.params.variant,
+                    free=tuple(beat.free) + ("n_r",),
+                    start=replace(beat.params, n_r=n_r),
+                )
+            )
+        except (RuntimeError, ValueError):
+            continue
+    if not fits:
+        return HModelForms(bic(beat), np.inf, 0.0, None)
+    free_fit = min(fits, key=lambda f: f.chi2)
+    d = bic(free_fit) - bic(beat)
+    return HModelForms(
+        bic(beat), bic(free_fit), float(1.0 / (1.0 + np.exp(np.clip(d, -700, 700) / 2))), free_fit
+    )
+
+
 def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np.ndarray:
     """Indices of ``n`` unclipped transients spanning the decay-time range (CRDS tau quantiles).
 
@@ -125,8 +181,14 @@ def calibrate(
     free=REFINE_FREE,
     variant: str = "causal",
     n_points: int = 6,
+    update: bool = True,
 ) -> Calibration:
-    """Beat-note fit, then (with ``refine``) the multi-ring-down refinement of ``free``."""
+    """Beat-note fit, then (with ``refine``) the multi-ring-down refinement of ``free``.
+
+    With ``update`` (the default) the refinement updates the beat note (a parameter the ring-downs
+    do not constrain stays where the beat note puts it); without, the ring-downs alone decide, as
+    in the letter.
+    """
     beat = beat_note_fit(config, variant=variant, window=window)
     if not refine:
         return Calibration(beat=beat, refined=None)
@@ -144,6 +206,7 @@ def calibrate(
         window=window,
         noise_v=noise,
         rows_of=rows,
+        prior=HPrior.from_beat(beat) if update else None,
     )
     return Calibration(beat=beat, refined=refined)
 

@@ -80,6 +80,10 @@ class Gates:
     rhat_max: float = 1.01
     ess_min: float = 400.0
     min_tau_multiple: float = 50.0
+    # the quantities gated (parameter or derived names; None: all). A model whose parameters are
+    # not identifiable while what it predicts is (the poles of Eq. 2 can trade roles and give one
+    # H(f)) is gated on its predictions; the parameters' diagnostics are still reported
+    gated: tuple | None = None
 
 
 # --------------------------------------------------------------------------- diagnostics

@@ -31,7 +31,10 @@ class BeatNotePosterior:
     """log p(theta | beat note) for the H parameters ``free`` plus the scale K.
 
     Sample space: log of f_c, f_r, gamma_r; a_r, n_r and K as they are (see ``sample_names``).
-    Likelihood: Gaussian in the measured |H(f_B)| with its stated uncertainty.
+    Likelihood: Gaussian in the measured |H(f_B)| with its stated uncertainty. |H| nearly repeats
+    under A_r -> -A_r/(1 + 2 A_r), which maps A_r > 0 onto -1 < A_r < 0: ``a_r_sign`` restricts
+    the support to the branch the ring-downs chose, so a sampler cannot wander into the mirror
+    mode that the ring-down data exclude.
     """
 
     f_hz: np.ndarray
@@ -39,6 +42,7 @@ class BeatNotePosterior:
     h_mag_u: np.ndarray
     free: tuple
     fixed: TFParams
+    a_r_sign: int = 0  # +1 or -1: the branch of A_r the ring-downs chose (0: both)
 
     @property
     def sample_names(self) -> tuple:
@@ -67,6 +71,8 @@ class BeatNotePosterior:
         for name, v in p.items():
             lo, hi = H_PRIOR[name]
             lp[(v <= lo) | (v >= hi) | ~np.isfinite(v)] = -np.inf
+        if self.a_r_sign and "a_r" in p:
+            lp[p["a_r"] * self.a_r_sign <= 0] = -np.inf
         ok = np.isfinite(lp)
         if not ok.any():
             return lp

@@ -149,10 +149,13 @@ def _evaluate(names, chains, log_prob, accepted, derived_fn, gates, label) -> Sa
                 raise ValueError(f"derived quantity {nm!r} clashes with a parameter name")
             derived[nm] = _frozen(np.asarray(v, dtype=float).reshape(shape))
             diagnostics[nm] = chain_diagnostics(derived[nm])
-    failures = _gate_failures(diagnostics, gates)
+    gated = {
+        k: v for k, v in diagnostics.items() if gates.gated is None or k in gates.gated
+    } or diagnostics
+    failures = _gate_failures(gated, gates)
     status = "passed" if not failures else f"failed after {n} steps: " + "; ".join(failures)
-    rh = [d["rhat"] for d in diagnostics.values()]
-    es = [min(d["ess_bulk"], d["ess_tail"]) for d in diagnostics.values()]
+    rh = [d["rhat"] for d in gated.values()]
+    es = [min(d["ess_bulk"], d["ess_tail"]) for d in gated.values()]
     return SamplingResult(
         names=tuple(names),
         samples=_frozen(kept),

@@ -25,6 +25,25 @@ from scipy import fft as sfft
 
 PARAM_NAMES = ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r")
 VARIANTS = ("letter", "causal")
+# the physical domain any fit or draw of H is kept in: frequencies from 1 Hz to 10 GHz (beyond the
+# reach of any CRDS digitiser either way), a positive DC gain 1 + A_r, and orders up to 2.5
+SUPPORT = {
+    "f_c_hz": (1.0, 1.0e10),
+    "a_r": (-0.99, 1.0e4),
+    "f_r_hz": (1.0, 1.0e10),
+    "gamma_r": (1.0e-3, 1.0e3),
+    "n_r": (0.5, 2.5),
+}
+
+
+def outside_support(params: TFParams, names=PARAM_NAMES) -> list:
+    """The names among ``names`` whose values lie outside :data:`SUPPORT` (or are not finite)."""
+    out = []
+    for n in names:
+        v, (lo, hi) = getattr(params, n), SUPPORT[n]
+        if not (np.isfinite(v) and lo < v < hi):
+            out.append(n)
+    return out
 
 
 @dataclass(frozen=True)

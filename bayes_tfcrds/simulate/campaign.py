@@ -522,6 +522,15 @@ def _effects_truth(effects: dict) -> dict:
     }
 
 
+def _preset_of(name) -> ChainPreset:
+    """A preset by name, or a :class:`ChainPreset` given directly (e.g. a chain-zoo draw)."""
+    if isinstance(name, ChainPreset):
+        return name
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
+    return PRESETS[name]
+
+
 def simulate_campaign(
     presets,
     rng: np.random.Generator,
@@ -534,7 +543,10 @@ def simulate_campaign(
     noise_v: dict | None = None,
     description: str | None = None,
 ):
-    """Simulate one campaign: one configuration per preset name (``letter-D1`` ... ``letter-D4``).
+    """Simulate one campaign: one configuration per preset (``letter-D1`` ... ``letter-D4``).
+
+    ``presets`` holds preset names or :class:`ChainPreset` objects (a chain of one's own, e.g.
+    from :mod:`bayes_tfcrds.simulate.zoo`, with its configuration label and noise).
 
     ``effects`` maps canonical effect names to parameter dicts (defaults filled in). With
     ``line_effects_default`` the letter's line (speed dependence and hard collisions on) and
@@ -562,9 +574,8 @@ def simulate_campaign(
     per_config = {k: g.spawn(len(presets)) for k, g in base.items()}
     configs, truth_cfg = {}, {}
     for ci, name in enumerate(presets):
-        if name not in PRESETS:
-            raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}")
-        pre = PRESETS[name]
+        pre = _preset_of(name)
+        name = name if isinstance(name, str) else pre.label
         tf = chain_tf.get(name, pre.tf)
         noise_single = noise_v.get(name, pre.noise_v)
         streams_ci = tuple(per_config[k][ci] for k in ("ringdown", "beat", "cmds"))
@@ -584,7 +595,9 @@ def simulate_campaign(
         sample=simulated_sample(campaign, lt),
         cavity=Cavity(fsr_hz=campaign.fsr_hz, finesse=campaign.finesse),
         configs=configs,
-        description=description or "simulated by bayes-tfcrds: " + ", ".join(presets),
+        description=description
+        or "simulated by bayes-tfcrds: "
+        + ", ".join(_preset_of(n).label if not isinstance(n, str) else n for n in presets),
     )
     truth_dict = {
         "line": {k: (float(v) if not isinstance(v, str) else v) for k, v in asdict(lt).items()},

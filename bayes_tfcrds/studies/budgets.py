@@ -70,6 +70,32 @@ def _budget_table(rep, bd):
         rep.add_text("Correlations: " + corr)
 
 
+def _refinement_table(rep, name: str, s: dict) -> None:
+    """How the ring-downs updated the beat note: values and tension z (|z| > 3: a finding)."""
+    ref = (s.get("transfer_function") or {}).get("refinement")
+    if not ref:
+        return
+    rows = []
+    for par, t in ref["parameters"].items():
+        rows.append(
+            [
+                par,
+                "-"
+                if t["beat_note"] is None
+                else f"{t['beat_note']:.6g} +/- {t['beat_note_u']:.2g}",
+                f"{t['refined']:.6g} +/- {t['refined_u']:.2g}",
+                "-" if t["z"] is None else f"{t['z']:+.2f}",
+            ]
+        )
+    rep.add_table(["H parameter", "beat note", "refined on ring-downs", "tension z"], rows)
+    rep.add_diagnostic(
+        f"{name}: beat note and ring-downs agree on H (|z| <= 3)",
+        not ref["in_tension"],
+        f"joint chi2 {ref['tension_chi2']:.2f} ({ref['tension_dof']} dof, p = "
+        f"{ref['tension_p']:.3g}); refined: {', '.join(s['transfer_function']['refined'])}",
+    )
+
+
 def _consistency(rep, ok: list) -> dict:
     """Weighted mean of A over configurations and its Birge ratio.
 
@@ -192,6 +218,7 @@ def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
         rep.add_heading(f"{name}: budget")
         _budget_table(rep, bd_a)
         _budget_table(rep, bd_s)
+        _refinement_table(rep, name, s)
     rep.add_heading("Line areas, CMDS comparison and intensities")
     rep.add_table(
         [

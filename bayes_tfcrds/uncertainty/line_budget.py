@@ -2,19 +2,20 @@
 
 Pipeline (each step a function of the bundle, the options and the seed):
 
-1. **H posterior.** emcee on the beat-note likelihood gives the H parameters; the letter's
-   refinement then updates the refined ones (default f_c): each posterior draw of the others is
-   followed by a draw of f_c from its conditional given the ring-downs (linearised on the
-   refinement's estimating equations, with its sandwich covariance, because the same record enters
-   once per t_cut).
+1. **H posterior** (:mod:`bayes_tfcrds.uncertainty.posterior_steps`). emcee on the beat-note
+   likelihood; the refined parameters (default f_c) of each draw follow from their ring-down update
+   given the others (the beat note as prior, the multi-ring-down composite likelihood adjusted to
+   its sandwich curvature); the draws are weighted by the ring-down likelihood and resampled, so
+   the draws are of one posterior from all the evidence.
 2. **Decay times** at every spectral point and t_cut with the refined H; a draw of H moves them
-   all at once through d tau/d theta (:mod:`bayes_tfcrds.uncertainty.propagate`).
+   all at once through its H(f) (:mod:`bayes_tfcrds.uncertainty.propagate`).
 3. **Line posterior.** emcee on the line parameters given the spectrum at the chosen t_cut; each
    posterior sample is shifted by the change of the line estimate that one H draw causes, so the
    H uncertainty enters as a correlated shift of the whole spectrum, never as independent noise.
    A_ref: emcee on the CMDS shifts.
-4. **Budget** (GUM, JCGM 100): ring-down noise, each H parameter (with their posterior
-   correlations), the t_cut choice and the line-shape model choice for u(A); pressure and
+4. **Budget** (GUM, JCGM 100): ring-down noise, the beat-note posterior of H (one row: all its
+   parameters through H(f)), each refined H parameter (correlated with the noise through the
+   shared records), the t_cut choice and the line-shape model choice for u(A); pressure and
    temperature for S = A/N; the CMDS reference for A/A_ref and E_n.
 
 The samplers' convergence gates are part of the result: a run that fails them is reported as
@@ -35,21 +36,34 @@ from bayes_tfcrds.core.constants import (
     number_density,
 )
 from bayes_tfcrds.core.gum import Budget, Component, normalized_error
-from bayes_tfcrds.core.linalg import central_hessian
 from bayes_tfcrds.core.quantity import Quantity
-from bayes_tfcrds.fit.h_calibration import BEAT_FREE, DEFAULT_T_CUTS
+from bayes_tfcrds.fit.h_calibration import (
+    BEAT_FREE,
+    DEFAULT_T_CUTS,
+    h_model_forms,
+    select_refinement_points,
+)
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_of
+from bayes_tfcrds.fit.refine import HPrior, refine_transfer_function
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.uncertainty.posterior_steps import (
+    IS_ESS_MIN,
     fit_transients_noise,
     h_posterior,
     line_draws,
     line_mcmc,
 )
-from bayes_tfcrds.uncertainty.propagate import line_gain, tau_influence, tau_sensitivities
+from bayes_tfcrds.uncertainty.propagate import (
+    TauKernels,
+    h_change,
+    line_gain,
+    tau_h_kernels,
+    tau_influence,
+    tau_sensitivities,
+)
 
 H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
 
@@ -71,6 +85,13 @@ class BudgetOptions:
     n_steps: int = 2500
     max_steps: int = 24000
     n_h_draws: int = 1000
+
+    def __post_init__(self):
+        bad = [n for n in self.refine_free if n not in BEAT_FREE]
+        if bad:
+            raise ValueError(
+                f"the budget refines a subset of the beat-note parameters {BEAT_FREE}; got {bad}"
+            )
 
     def with_steps(self, n_steps: int | None = None, max_steps: int | None = None) -> BudgetOptions:
         """These options with other sampler lengths.
@@ -96,6 +117,7 @@ class BudgetResult:
     samples: dict = field(repr=False)
     runs: dict = field(repr=False)
     tau_table: list = field(default_factory=list, repr=False)
+    refined: object = field(default=None, repr=False)  # the refinement update (tf-crds)
 
     @property
     def status(self) -> str:
@@ -177,24 +199,25 @@ class _DecayTimes:
 class _HSensitivity:
     """Step 4.
 
-    How A moves with H: the gradient (Hz/m per unit), its curvature, and the pieces of the chain
-    rule through each tau (the usable rows ``good``, dA/d(alpha), d(alpha)/d(tau)).
+    How A moves with H: the first-order kernel in H(f) (``area_kernel``, what a draw of H does to A
+    through every tau), the gradient in the H parameters (Hz/m per unit, for the refined rows and
+    the breakdown), and the pieces of the chain rule through each tau (the usable rows ``good``,
+    dA/d(alpha), d(alpha)/d(tau)).
     """
 
     good: np.ndarray
     k_gain: np.ndarray
     dalpha_dtau: np.ndarray
     grad_a: np.ndarray
-    hess_a: np.ndarray
+    area_kernel: TauKernels
 
 
 @dataclass(frozen=True)
 class _HSplit:
-    """One H draw is delta = (G delta_O + eps_refine, delta_O).
+    """One H draw is (beat-note draw of the others O, refined R | O).
 
-    The beat-note parameters O enter with total derivatives (directly and through the refined
-    parameters' conditional), the refined ones with their refinement scatter eps (ring-down noise
-    acting through H).
+    R | O is the refined parameters' conditional posterior: its mean moves with O (part of the
+    beat-note row), its scatter eps is ring-down noise acting through H (the refined rows).
     """
 
     others: tuple
@@ -202,7 +225,6 @@ class _HSplit:
     io: list
     ir: list
     centre: np.ndarray
-    total_o: np.ndarray
 
 
 def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
@@ -271,12 +293,11 @@ def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
     return runs["line"].flat()
 
 
-def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> _HSensitivity:
+def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star) -> _HSensitivity:
     """Step 4: the sensitivity of A to H.
 
-    dA/dtheta_H through every tau (implicit-function derivatives and the line fit's gain) and, to
-    second order, the Hessian of A from full refits at +-1 sd of each H parameter (a 1-sigma H draw
-    bends A by ~2 % of u(A) beyond the tangent).
+    dA/dH(f) through every tau (implicit-function derivatives in the function H, then the line
+    fit's gain), and dA/dtheta_H from the same chain rule with dH/dtheta.
     """
     options, rd, fits, j0 = inp.options, inp.config.ringdowns, dt.fits, dt.j0
     ia = dt.lsq.names.index("line_area")
@@ -286,50 +307,43 @@ def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> _HSensitiv
         & (fits.tau_u_s[:, j0] > 0)
     )
     good = np.nonzero(ok)[0]
-    s_tau = tau_sensitivities(
-        rd.time_s,
-        rd.signal_v,
-        np.full(good.size, options.t_cut_s),
-        fits.tau_s[good, j0],
-        fits.amplitude_v[good, j0],
-        h_star,
-        BEAT_FREE,
-        options.window,
+    rows = dict(
+        t_cut_s=np.full(good.size, options.t_cut_s),
+        tau_s=fits.tau_s[good, j0],
+        amplitude_v=fits.amplitude_v[good, j0],
+        tf=h_star,
+        window=options.window,
         noise_v=rd.noise_v,
         rows_of=good,
     )
+    s_tau = tau_sensitivities(rd.time_s, rd.signal_v, names=BEAT_FREE, **rows)
     k_gain = line_gain(dt.lsq)[ia]  # dA/d(1/(c tau))
     dalpha_dtau = -1.0 / (C * fits.tau_s[good, j0] ** 2)
     grad_a = (k_gain * dalpha_dtau) @ s_tau  # dA/dtheta_H (Hz/m per unit)
-    h_centre = h_star.as_vector(BEAT_FREE)
-    h_sd = np.std(h_draws, axis=0)
+    kernel = tau_h_kernels(rd.time_s, **rows).combine(k_gain * dalpha_dtau)
+    return _HSensitivity(good, k_gain, dalpha_dtau, grad_a, kernel)
 
-    def area_at(v):
-        f = fit_ringdowns(
-            rd,
-            [options.t_cut_s],
-            method="tf-crds",
-            tf=h_star.with_vector(v, BEAT_FREE),
-            window=options.window,
+
+def h_shifts(kernels: TauKernels, draws, h_star, n_rows: int, chunk: int = 100) -> np.ndarray:
+    """First-order shifts (n_draws, n_rows) that H draws (natural, BEAT_FREE order) cause.
+
+    Through each draw's H(f) (function space), in chunks of draws to bound memory.
+    """
+    draws = np.atleast_2d(draws)
+    out = np.zeros((draws.shape[0], n_rows))
+    for i in range(0, draws.shape[0], chunk):
+        out[i : i + chunk] = kernels.shifts(
+            h_change(draws[i : i + chunk], BEAT_FREE, h_star), n_rows
         )
-        return fit_line(
-            [crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])],
-            options.profile,
-            inp.gd,
-            inp.nu_ref,
-        ).line_area
-
-    hess_a = central_hessian(area_at, h_centre, np.where(h_sd > 0, h_sd, 1e-6 * np.abs(h_centre)))
-    return _HSensitivity(good, k_gain, dalpha_dtau, grad_a, hess_a)
+    return out
 
 
-def _h_split(h_star, h_parts: dict, grad_a) -> _HSplit:
+def _h_split(h_star, h_parts: dict) -> _HSplit:
     """The decomposition of an H draw into beat-note and refinement parts (see :class:`_HSplit`)."""
-    others, refd, gain = h_parts["others"], h_parts["refined"], h_parts["gain"]
+    others, refd = h_parts["others"], h_parts["refined"]
     io = [BEAT_FREE.index(n) for n in others]
     ir = [BEAT_FREE.index(n) for n in refd]
-    total_o = grad_a[io] + (grad_a[ir] @ gain if ir else 0.0)
-    return _HSplit(others, refd, io, ir, h_star.as_vector(BEAT_FREE), total_o)
+    return _HSplit(others, refd, io, ir, h_star.as_vector(BEAT_FREE))
 
 
 def _noise_refinement_correlation(
@@ -400,15 +414,14 @@ def _refinement_shifts(
     return d_ref
 
 
-def _h_shifted_areas(inp, dt, sens, split, h_draws, h_star, refined, h_parts, a_noise, u_dir):
+def _h_shifted_areas(inp, dt, sens, split, h_star, refined, h_parts, a_noise, u_dir):
     """Step 5.
 
-    Each line-posterior draw of A shifted by one H draw (beat-note part to second order, refinement
-    part correlated with the noise); returns (A draws, noise-refinement correlations).
+    Each line-posterior draw of A shifted by one H draw: the beat-note part through its H(f), the
+    refinement part correlated with the noise. Returns (A draws, noise-refinement correlations,
+    beat-note shifts).
     """
-    d_beat = (h_draws[:, split.io] - split.centre[split.io]) @ split.total_o  # the beat-note part
-    d_full = h_draws - split.centre
-    d_beat = d_beat + 0.5 * np.einsum("ni,ij,nj->n", d_full, sens.hess_a, d_full)
+    d_beat = h_shifts(sens.area_kernel, h_parts["beat_draws"], h_star, 1)[:, 0]
     d_ref = np.zeros(a_noise.size)
     r_noise_ref = {}
     if split.ir:
@@ -417,7 +430,7 @@ def _h_shifted_areas(inp, dt, sens, split, h_draws, h_star, refined, h_parts, a_
         )
         d_ref = _refinement_shifts(inp, refined, split, sens.grad_a, a_noise, u_dir, r_noise_ref)
     pair = inp.streams["pair"].integers(0, d_beat.size, size=a_noise.size)
-    return a_noise + d_ref + d_beat[pair], r_noise_ref
+    return a_noise + d_ref + d_beat[pair], r_noise_ref, d_beat
 
 
 def _reference_area(inp: _Inputs, runs: dict):
@@ -446,50 +459,38 @@ def _reference_area(inp: _Inputs, runs: dict):
     return ref_flat[:, ref_lsq.names.index("line_area")]
 
 
-def _h_components(
-    split: _HSplit, grad_a, hess_a, h_draws, refined, r_noise_ref: dict, noise_name: str
-):
+def _h_components(split: _HSplit, grad_a, d_beat, refined, r_noise_ref: dict, noise_name: str):
     """The H rows of the A budget and their correlations.
 
-    Rows for the beat-note posterior, the refinement and the curvature.
+    One row for the posterior of the parameters not refined (all at once, through H(f)), one per
+    refined parameter (its ring-down scatter given the others).
     """
     comps, corr = [], {}
-    io, ir, refd, others, centre = split.io, split.ir, split.refined, split.others, split.centre
-    delta_o = h_draws[:, io] - centre[io]
+    ir, refd, others, centre = split.ir, split.refined, split.others, split.centre
     for k, n in enumerate(refd):
-        u_r = float(np.sqrt(refined.cov[k, k]))
         comps.append(
             Component(
                 f"H: {n} (refined on ring-downs)",
                 float(centre[ir[k]]),
-                u_r,
+                float(np.sqrt(refined.cov[k, k])),
                 float(grad_a[ir[k]]),
                 H_UNITS[n],
-                note="Type A: sandwich u of the multi-ring-down refinement given the other H "
-                "parameters (ring-down noise acting through H)",
+                note="Type A: posterior u of the ring-down update of the beat note given the other "
+                "H parameters (ring-down noise acting through H)",
             )
         )
-    osd = delta_o.std(axis=0)
-    oc = np.atleast_2d(np.corrcoef(delta_o.T)) if len(io) > 1 else np.ones((1, 1))
-    for k, n in enumerate(others):
-        note = "Type A: beat-note posterior" + (
-            f"; sensitivity includes the shift of the refined {', '.join(refd)} it causes"
-            if refd
-            else ""
+    comps.append(
+        Component(
+            f"H: posterior of {', '.join(others)} (beat note, weighted by the ring-downs)",
+            None,
+            float(np.std(d_beat)),
+            1.0,
+            "Hz/m",
+            note="Type A: sd of A over the joint posterior draws of these H parameters (the "
+            "refined ones at their conditional mean), each propagated through its H(f) into "
+            "every tau (first order in H, exact in the parameters)",
         )
-        comps.append(
-            Component(
-                f"H: {n}",
-                float(centre[io[k]]),
-                float(osd[k]),
-                float(split.total_o[k]),
-                H_UNITS[n],
-                note=note,
-            )
-        )
-    for a in range(len(others)):
-        for b in range(a + 1, len(others)):
-            corr[(f"H: {others[a]}", f"H: {others[b]}")] = float(oc[a, b])
+    )
     for n, r in r_noise_ref.items():
         corr[(noise_name, f"H: {n} (refined on ring-downs)")] = r
     if len(refd) > 1:
@@ -502,22 +503,64 @@ def _h_components(
                         f"H: {refd[b]} (refined on ring-downs)",
                     )
                 ] = float(rc[a, b])
-    # GUM 5.1.2: the second-order term's own variance, 1/2 tr((Hess Sigma)^2) for Gaussian
-    # H draws (its mean shift, 1/2 tr(Hess Sigma), is already in the mean of the draws)
-    sig_h = np.atleast_2d(np.cov(h_draws.T))
-    hs = hess_a @ sig_h
-    comps.append(
-        Component(
-            "H: curvature of A (second order)",
-            None,
-            float(np.sqrt(0.5 * np.trace(hs @ hs))),
-            1.0,
-            "Hz/m",
-            note="Type A: 1/2 tr((d2A/dH2 Sigma_H)^2), GUM 5.1.2; the first-order H rows above "
-            "miss it",
-        )
-    )
     return comps, corr
+
+
+FORM_WEIGHT_MIN = 1e-4  # BIC weight below which the other H form is not even evaluated
+
+
+def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
+    """Step 6b: the H model-form row (Eq. 2 with n_r = 2 against n_r free), sized by the data.
+
+    The n_r-free form's A (its beat-note fit, the same ring-down update, decay times and line fit)
+    enters with its BIC weight w: u = sqrt(w) |A_free - A|, the between-model sd about the form
+    used. A form the beat note rejects (w -> 0) contributes nothing. Returns (Component, record).
+    """
+    options = inp.options
+    forms = h_model_forms(inp.config, beat)
+    a_free = None
+    if forms.free_fit is not None and forms.weight_free > FORM_WEIGHT_MIN:
+        alt = forms.free_fit
+        free = tuple(refined.free) if refined is not None else ()
+        rd = inp.config.ringdowns
+        h_alt = alt.params
+        if free:
+            idx = select_refinement_points(rd, options.n_refine_points)
+            t_cuts = np.asarray(options.t_cuts_s, float)
+            h_alt = refine_transfer_function(
+                rd.time_s,
+                rd.signal_v[idx],
+                np.tile(t_cuts, idx.size),
+                alt.params,
+                free=free,
+                window=options.window,
+                noise_v=None if rd.noise_v is None else np.asarray(rd.noise_v)[idx],
+                rows_of=np.repeat(np.arange(idx.size), t_cuts.size),
+                prior=HPrior.from_beat(alt),
+            ).params
+        f = fit_ringdowns(rd, [options.t_cut_s], "tf-crds", h_alt, options.window)
+        spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
+        a_free = fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area
+    w = forms.weight_free
+    u = 0.0 if a_free is None else float(np.sqrt(w) * abs(a_free - dt.lsq.line_area))
+    record = {
+        "bic_n_r_2": forms.bic_fixed,
+        "bic_n_r_free": forms.bic_free,
+        "weight_n_r_free": w,
+        "n_r_free_fit": None if forms.free_fit is None else forms.free_fit.params.n_r,
+        "a_n_r_free_hz_per_m": a_free,
+        "asks_for_free_order": forms.asks_for_free_order,
+    }
+    comp = Component(
+        "H model form (Eq. 2: n_r = 2 vs n_r free)",
+        None,
+        u,
+        1.0,
+        "Hz/m",
+        note=f"from the data: BIC weight of n_r free on the beat note w = {w:.3g}; "
+        "u = sqrt(w) |A(n_r free) - A(n_r = 2)|",
+    )
+    return comp, record
 
 
 def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
@@ -639,7 +682,6 @@ def _summary(
     budget_ratio,
     a_total,
     sens_a: dict,
-    hess_a,
     h_star,
 ) -> dict:
     """The ``budget.json`` payload (cm^-2 and cm/molecule at this edge, SI beside them)."""
@@ -685,8 +727,8 @@ def _summary(
             f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in dt.area_by_tcut.items()
         },
         "sensitivities_hz_per_m": {k: float(v) for k, v in sens_a.items()},
-        "hessian_hz_per_m": (
-            {"names": list(BEAT_FREE), "matrix": hess_a.tolist()}
+        "h_propagation": (
+            "each H draw through its H(f) into every tau, first order in H (function space)"
             if options.method == "tf-crds"
             else None
         ),
@@ -719,7 +761,23 @@ def _summary(
     return summary
 
 
-def _apply_gates(summary: dict, options: BudgetOptions, runs: dict) -> None:
+def _refinement_summary(refined) -> dict:
+    """How the ring-downs updated the beat note: per parameter values, u, shift and tension z."""
+    c2, dof, p = refined.tension_chi2
+    return {
+        "parameters": refined.tension(),
+        "tension_chi2": c2,
+        "tension_dof": dof,
+        "tension_p": p,
+        "in_tension": bool(refined.in_tension),
+        "composite_weight": float(refined.weight),
+        "converged": bool(refined.converged),
+        "note": "z: shift of the refined value from the beat note over its expected scatter when "
+        "both agree; |z| > 3 is reported as a finding",
+    }
+
+
+def _apply_gates(summary: dict, options: BudgetOptions, runs: dict, h_weights=None) -> None:
     """Step 10.
 
     The samplers' diagnostics into the summary; a failed run is never shown as a result (its numbers
@@ -755,13 +813,29 @@ def _apply_gates(summary: dict, options: BudgetOptions, runs: dict) -> None:
                 for k, v in runs.items()
             },
         }
+    weights = h_weights
+    if weights is not None:
+        summary["diagnostics"]["h_ring_down_weights"] = {
+            "pool": weights.pool,
+            "ess": weights.ess,
+            "passed": weights.passed,
+            "note": "beat-note draws weighted by the ring-down likelihood (the joint posterior of "
+            "H); a low ESS means the ring-downs overrule the beat note on parameters not refined",
+        }
+        passed = passed and weights.passed
+        summary["diagnostics"]["passed"] = bool(passed)
     if not passed:
         failed = {
             k: summary.pop(k) for k in ("line_area", "reference_area", "ratio", "en", "intensity")
         }
         summary.update({k: None for k in failed})
         summary["unconverged_estimates"] = failed
-        summary["status"] = "failed: convergence gates not met"
+        summary["status"] = (
+            "failed: convergence gates not met"
+            if weights is None or weights.passed
+            else f"failed: the ring-downs overrule the beat note (importance ESS {weights.ess:.0f} "
+            f"< {IS_ESS_MIN}); refine more H parameters (--refine)"
+        )
     else:
         summary["status"] = "ok"
 
@@ -769,37 +843,37 @@ def _apply_gates(summary: dict, options: BudgetOptions, runs: dict) -> None:
 def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> list:
     """Step 11.
 
-    Decay-time posteriors at every point and t_cut: noise (the fit's u) and H (one draw moves every
-    tau through S; its covariance is S Sigma_H S^T), first order; seconds.
+    Decay-time posteriors at every point and t_cut: the mean and sd over the H draws (each through
+    its H(f), first order) about the fit at H*, and the fit's noise u; seconds.
     """
     options, rd, fits = inp.options, inp.config.ringdowns, dt.fits
     tau_table = []
-    cov_h = np.cov(h_draws.T) if options.method == "tf-crds" else None
     for j, tc in enumerate(dt.t_cuts):
         ok_j = np.isfinite(fits.tau_s[:, j]) & np.isfinite(fits.tau_u_s[:, j])
         rows_j = np.nonzero(ok_j)[0]
         u_h = np.zeros(rows_j.size)
-        if cov_h is not None and rows_j.size:
-            s_j = tau_sensitivities(
+        if options.method == "tf-crds" and rows_j.size:
+            kern = tau_h_kernels(
                 rd.time_s,
-                rd.signal_v,
                 np.full(rows_j.size, tc),
                 fits.tau_s[rows_j, j],
                 fits.amplitude_v[rows_j, j],
                 h_star,
-                BEAT_FREE,
                 options.window,
                 noise_v=rd.noise_v,
                 rows_of=rows_j,
             )
-            u_h = np.sqrt(np.maximum(np.einsum("ip,pq,iq->i", s_j, cov_h, s_j), 0.0))
-        for i, uh in zip(rows_j, u_h):
+            shifts = h_shifts(kern, h_draws, h_star, rows_j.size)
+            u_h, mean_h = np.std(shifts, axis=0), np.mean(shifts, axis=0)
+        else:
+            mean_h = np.zeros(rows_j.size)
+        for i, uh, dh in zip(rows_j, u_h, mean_h):
             un = fits.tau_u_s[i, j]
             tau_table.append(
                 (
                     float(fits.nu_hz[i]),
                     float(tc),
-                    float(fits.tau_s[i, j]),
+                    float(fits.tau_s[i, j] + dh),  # the posterior mean over H, first order
                     float(un),
                     float(uh),
                     float(np.hypot(un, uh)),
@@ -826,9 +900,9 @@ def run_budget(
     rng = np.random.default_rng(0) if rng is None else rng
     inp = _inputs(bundle, config, options, rng, outdir, progress)
     runs = {}
-    h_star = h_draws = refined = h_parts = None
+    h_star = h_draws = refined = h_parts = beat = None
     if options.method == "tf-crds":  # 1. H
-        _, refined, h_star, h_draws, h_run, h_parts = h_posterior(
+        beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
             config, options, inp.streams["h"], inp.chain_file("h"), progress
         )
         if h_run is not None:
@@ -837,32 +911,44 @@ def run_budget(
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     a_noise = line_flat[:, dt.lsq.names.index("line_area")]
     u_dir = float(np.std(a_noise))
-    sens_a, hess_a, h_rows = {}, None, ([], {})
+    sens_a, h_rows, d_h = {}, ([], {}), None
     if options.method == "tf-crds":  # 4-5. H into A
-        sens = _h_sensitivity(inp, dt, h_star, h_draws)
-        split = _h_split(h_star, h_parts, sens.grad_a)
-        a_total, r_noise_ref = _h_shifted_areas(
-            inp, dt, sens, split, h_draws, h_star, refined, h_parts, a_noise, u_dir
+        sens = _h_sensitivity(inp, dt, h_star)
+        split = _h_split(h_star, h_parts)
+        a_total, r_noise_ref, d_beat = _h_shifted_areas(
+            inp, dt, sens, split, h_star, refined, h_parts, a_noise, u_dir
         )
-        sens_a, hess_a = dict(zip(BEAT_FREE, sens.grad_a)), sens.hess_a
+        sens_a = dict(zip(BEAT_FREE, sens.grad_a))
         h_rows = _h_components(
-            split,
-            sens.grad_a,
-            sens.hess_a,
-            h_draws,
-            refined,
-            r_noise_ref,
-            "ring-down noise (line fit given H)",
+            split, sens.grad_a, d_beat, refined, r_noise_ref, "ring-down noise (line fit given H)"
         )
+        d_h = h_shifts(sens.area_kernel, h_draws, h_star, 1)[:, 0]
     else:
         a_total = a_noise.copy()
     a_ref = _reference_area(inp, runs)  # 6. A_ref
+    form = None
+    if options.method == "tf-crds":  # 6b. the form of the H model
+        form_row, form = _h_model_form(inp, dt, beat, refined)
+        h_rows = (h_rows[0] + [form_row], h_rows[1])
     budget_a = _budget_a(options, dt, a_total, u_dir, h_rows)  # 7-9. budgets
     budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u)
     budget_ratio = _budget_ratio(budget_a.value, budget_a.combined_u, a_ref)
-    summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, hess_a, h_star)
-    _apply_gates(summary, options, runs)  # 10. gates
-    samples = {"a_total": a_total, "a_noise": a_noise, "a_ref": a_ref, "h_draws": h_draws}
+    summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, h_star)
+    if refined is not None:
+        summary["transfer_function"]["refinement"] = _refinement_summary(refined)
+    if form is not None:
+        summary["transfer_function"]["model_form"] = form
+        # the ring-downs may have asked for more parameters than the options named
+        summary["transfer_function"]["refined"] = list(refined.free)
+        summary["transfer_function"]["refined_asked"] = list(options.refine_free)
+    _apply_gates(summary, options, runs, (h_parts or {}).get("weights"))  # 10. gates
+    samples = {
+        "a_total": a_total,
+        "a_noise": a_noise,
+        "a_ref": a_ref,
+        "h_draws": h_draws,
+        "a_shift_h": d_h,  # first-order shift of A (Hz/m) that each H draw causes
+    }
     return BudgetResult(
         summary=summary,
         budget_a=budget_a,
@@ -871,4 +957,5 @@ def run_budget(
         samples=samples,
         runs=runs,
         tau_table=_tau_table(inp, dt, h_star, h_draws),
+        refined=refined,
     )

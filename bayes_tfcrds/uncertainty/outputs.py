@@ -34,6 +34,9 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         [result.budget_ratio] if result.budget_ratio is not None else []
     )
     md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
+    refinement = (result.summary.get("transfer_function") or {}).get("refinement")
+    if refinement:
+        md += "\n\n" + refinement_markdown(refinement)
     atomic_write_text(out / "budget.md", md + "\n")
     atomic_write_text(out / "budget.csv", result.budget_a.to_csv())
     lines = ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"] + [
@@ -52,3 +55,27 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         plt.close(fig)
         written.append(out / f"corner_{key}.png")
     return written
+
+
+def refinement_markdown(refinement: dict) -> str:
+    """The H update table of budget.md: beat note, refined value, shift and tension z."""
+    rows = [
+        "## H: beat note updated by the ring-downs",
+        "",
+        "| parameter | beat note | u | refined | u | shift (beat-note u) | tension z |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    fmt = lambda v, f: "-" if v is None else format(v, f)  # noqa: E731
+    for name, t in refinement["parameters"].items():
+        rows.append(
+            f"| {name} | {fmt(t['beat_note'], '.6g')} | {fmt(t['beat_note_u'], '.2g')} | "
+            f"{t['refined']:.6g} | {t['refined_u']:.2g} | {fmt(t['shift_in_beat_u'], '+.2f')} | "
+            f"{fmt(t['z'], '+.2f')} |"
+        )
+    rows.append("")
+    finding = "; **finding: beat note and ring-downs disagree (|z| > 3)**"
+    rows.append(
+        f"Joint tension chi2 = {refinement['tension_chi2']:.2f} ({refinement['tension_dof']} dof, "
+        f"p = {refinement['tension_p']:.3g})" + (finding if refinement["in_tension"] else "")
+    )
+    return "\n".join(rows)

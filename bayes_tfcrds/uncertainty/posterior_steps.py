@@ -10,12 +10,23 @@ whose gates decide whether the budget may be shown.
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import numpy as np
 
 from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit, select_refinement_points
-from bayes_tfcrds.fit.refine import refine_transfer_function
+from bayes_tfcrds.fit.refine import (
+    HPrior,
+    from_sample,
+    refine_transfer_function,
+    ringdown_log_likelihood,
+    sample_jacobian,
+    to_sample,
+)
+from bayes_tfcrds.inference.diagnostics import Gates
 from bayes_tfcrds.inference.posteriors import BeatNotePosterior, LinePosterior
 from bayes_tfcrds.inference.runner import run_ensembles
+from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, transfer_function_array
 from bayes_tfcrds.uncertainty.propagate import model_of
 
 
@@ -37,7 +48,9 @@ def n_walkers(ndim: int) -> int:
     return max(3 * ndim, 16)
 
 
-def _sample(post, p0, names, ndim, rng, options, backend, progress, label):
+def _sample(
+    post, p0, names, ndim, rng, options, backend, progress, label, derived=None, gates=Gates()
+):
     """emcee on ``post`` with the budget's ensembles, walkers, lengths and moves."""
     return run_ensembles(
         post,
@@ -53,88 +66,246 @@ def _sample(post, p0, names, ndim, rng, options, backend, progress, label):
         progress=progress,
         label=label,
         moves=sampler_moves(),
+        derived_fn=derived,
+        gates=gates,
     )
 
 
-def h_posterior(config, options, rng, backend, progress):
-    """Beat-note MCMC, then the refinement update of ``refine_free``.
+SIGN_CLEARANCE = 5.0  # |A_r| / u(A_r) above which the A_r branch is fixed by the ring-downs
+OVERDISPERSION = 3.0  # start spread in units of the least-squares sd
 
-    Returns (beat-note fit, refinement or None, H*, H draws (n, 4), sampler run or None, the draw's
-    decomposition into beat-note and refined parts).
+
+def dispersed_starts(post, x0, spread, rng, n, inflate=OVERDISPERSION):
+    """``n`` starting points spread ``inflate`` times wider than the least-squares sd.
+
+    Over-dispersed starts let R-hat see a second mode or a slow direction (Gelman & Rubin 1992);
+    points outside the posterior's support are drawn again, closer in, until every one is inside.
     """
+    x = x0 + inflate * spread * rng.standard_normal((n, x0.size))
+    for shrink in (0.7, 0.5, 0.3, 0.1, 0.0):
+        bad = ~np.isfinite(post(x))
+        if not bad.any():
+            return x
+        x[bad] = x0 + shrink * inflate * spread * rng.standard_normal((int(bad.sum()), x0.size))
+    return x
+
+
+IS_POOL = 2  # beat-note draws per kept H draw, weighted by the ring-down likelihood
+IS_POOL_MAX = 8  # the most the pool grows to when the weights are uneven
+IS_ESS_MIN = 200  # importance ESS below which the H posterior is not trusted (gate)
+
+
+@dataclass(frozen=True)
+class RingDownWeights:
+    """Importance weights of beat-note draws under the ring-down likelihood, and the resample.
+
+    ``ess`` (Kish) of ``pool`` draws; ``picks`` the systematic resample's indices; ``passed`` when
+    ESS >= IS_ESS_MIN (else the ring-downs overrule the beat note on parameters they do not
+    refine, and those should be refined too).
+    """
+
+    pool: int
+    ess: float
+    picks: np.ndarray = field(repr=False)
+
+    @property
+    def passed(self) -> bool:
+        return bool(self.ess >= IS_ESS_MIN)
+
+
+def ring_down_weights(refined, beat_draws, n: int, rng) -> RingDownWeights:
+    """Weight ``beat_draws`` by the ring-down likelihood and resample ``n`` (systematic)."""
+    logw = ringdown_log_likelihood(refined, beat_draws, BEAT_FREE)
+    logw = np.where(np.isfinite(logw), logw, -np.inf)
+    w = np.exp(logw - np.max(logw))
+    w /= w.sum()
+    ess = float(1.0 / np.sum(w * w))
+    positions = (rng.uniform() + np.arange(n)) / n
+    picks = np.minimum(np.searchsorted(np.cumsum(w), positions), w.size - 1)
+    return RingDownWeights(pool=int(w.size), ess=ess, picks=picks)
+
+
+def _beat_posterior(config, options):
+    """The beat-note fit, its posterior (A_r branch fixed clear of 0), over-dispersed p0."""
     beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
     tfd = config.transfer_function
+    sd0 = np.sqrt(np.diag(beat.cov))
+    a_r, u_a_r = beat.params.a_r, sd0[BEAT_FREE.index("a_r")]
     post = BeatNotePosterior(
         f_hz=np.asarray(tfd.f_hz),
         h_mag=np.asarray(tfd.h_mag),
         h_mag_u=np.asarray(tfd.h_mag_u),
         free=BEAT_FREE,
         fixed=beat.params,
+        # the branch of A_r chosen by the ring-downs, where the posterior sits clear of A_r = 0
+        a_r_sign=int(np.sign(a_r)) if abs(a_r) > SIGN_CLEARANCE * u_a_r else 0,
     )
     x0 = post.to_sample(beat.params, beat.scale)
-    sd0 = np.sqrt(np.diag(beat.cov))
     # initial spread: the least-squares covariance, in sample space (log params: relative sd)
     nat = np.append(beat.params.as_vector(BEAT_FREE), beat.scale)
     spread = np.where([n.startswith("log_") for n in post.sample_names], sd0 / np.abs(nat), sd0)
 
     def p0(r, n):
-        return x0 + spread * r.standard_normal((n, x0.size))
+        return dispersed_starts(post, x0, spread, r, n)
 
-    if options.posterior == "laplace":
-        run = None
-        draws = rng.multivariate_normal(
-            nat, 0.5 * (beat.cov + beat.cov.T), size=options.n_h_draws, method="eigh"
-        )[:, : len(BEAT_FREE)]
-    else:
+    return beat, post, p0
+
+
+H_GATE_FREQUENCIES = 8  # log-spaced frequencies at which H(f) is gated
+
+
+def h_predictions(post, ringdowns):
+    """Derived quantities Re H, Im H (normalised) at log-spaced frequencies, and the gated names.
+
+    From 1 kHz to the ring-downs' Nyquist frequency: the band the decay times see. The budget
+    uses H only through H(f), so the sampler is gated on it (and on the scale K): the poles of
+    Eq. 2 may trade roles (an overdamped resonance is two real poles beside f_c) without
+    changing H, which would fail a parameter R-hat for no reason.
+    """
+    nyquist = 0.5 / float(ringdowns.time_s[1] - ringdowns.time_s[0])
+    f = np.logspace(3, np.log10(nyquist), H_GATE_FREQUENCIES)
+
+    def derived(x):
+        p = post.to_params(x)
+        cols = {n: np.full(x.shape[0], getattr(post.fixed, n)) for n in PARAM_NAMES}
+        cols.update({n: p[n] for n in post.free})
+        h = transfer_function_array(
+            f[None, :], *(cols[n][:, None] for n in PARAM_NAMES), post.fixed.variant
+        )
+        out = {f"re_H_{fk:.3g}Hz": h[:, i].real for i, fk in enumerate(f)}
+        out.update({f"im_H_{fk:.3g}Hz": h[:, i].imag for i, fk in enumerate(f)})
+        return out
+
+    names = tuple(f"{part}_H_{fk:.3g}Hz" for part in ("re", "im") for fk in f) + ("scale",)
+    return derived, names
+
+
+def _pool(beat, post, run, rng, size: int) -> np.ndarray:
+    """``size`` beat-note posterior draws of BEAT_FREE (natural units).
+
+    From the MCMC run (without replacement, at most all of it) or, with ``run`` None, from the
+    Laplace approximation in the sampled parametrisation (log of the positive parameters: every
+    draw physical).
+    """
+    if run is None:
+        centre = beat.params.as_vector(BEAT_FREE)
+        jac = sample_jacobian(BEAT_FREE, centre)
+        cov_s = beat.param_cov / np.outer(jac, jac)
+        phi = rng.multivariate_normal(
+            to_sample(BEAT_FREE, centre), 0.5 * (cov_s + cov_s.T), size=size, method="eigh"
+        )
+        return from_sample(BEAT_FREE, phi.T).T
+    flat = run.flat()
+    pick = rng.choice(flat.shape[0], size=min(size, flat.shape[0]), replace=False)
+    nat_draws = post.to_params(flat[pick])
+    return np.column_stack([nat_draws[n] for n in BEAT_FREE])
+
+
+def _refinement(config, options, beat, free):
+    """The multi-ring-down update of ``free``; returns (refinement, records used)."""
+    rd = config.ringdowns
+    idx = select_refinement_points(rd, options.n_refine_points)
+    t_cuts = np.asarray(options.t_cuts_s, float)
+    rows = np.repeat(np.arange(idx.size), t_cuts.size)
+    noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
+    refined = refine_transfer_function(
+        rd.time_s,
+        rd.signal_v[idx],
+        np.tile(t_cuts, idx.size),
+        beat.params,
+        free=free,
+        window=options.window,
+        noise_v=noise,
+        rows_of=rows,
+        sens_names=BEAT_FREE,
+        prior=HPrior.from_beat(beat),
+    )
+    return refined, idx
+
+
+def _joint_draws(beat, post, run, refined, options, rng):
+    """Draws of the joint posterior of H (beat note x ring-downs).
+
+    Beat-note draws of the others, each followed by the refined parameters' conditional mean,
+    weighted by the ring-down likelihood and resampled (the pool grows to IS_POOL_MAX times the
+    draws when the weights are uneven); then the refined parameters' conditional scatter. Returns
+    (draws, the same with the conditional mean, weights).
+    """
+    others = tuple(n for n in BEAT_FREE if n not in refined.free)
+    io = [BEAT_FREE.index(n) for n in others]
+    ir = [BEAT_FREE.index(n) for n in refined.free]
+    factor = IS_POOL
+    while True:
+        draws = _pool(beat, post, run, rng, factor * options.n_h_draws)
+        beat_draws = draws.copy()
+        beat_draws[:, ir] = refined.draw_given(draws[:, io], others, rng=None)
+        weights = ring_down_weights(refined, beat_draws, options.n_h_draws, rng)
+        if weights.passed or factor >= IS_POOL_MAX or draws.shape[0] < factor * options.n_h_draws:
+            break
+        factor *= 4
+    draws, beat_draws = draws[weights.picks], beat_draws[weights.picks]
+    draws[:, ir] = refined.draw_given(draws[:, io], others, rng)
+    return draws, beat_draws, weights
+
+
+def h_posterior(config, options, rng, backend, progress):
+    """The posterior of H: beat-note MCMC (or Laplace), updated by the ring-downs.
+
+    Returns (beat-note fit, refinement or None, H*, H draws (n, 4), sampler run or None, the draw's
+    decomposition into beat-note and refined parts).
+    """
+    beat, post, p0 = _beat_posterior(config, options)
+    run = None
+    if options.posterior != "laplace":
+        ndim = len(post.sample_names)
+        derived, gated = h_predictions(post, config.ringdowns)
         run = _sample(
-            post, p0, post.sample_names, x0.size, rng, options, backend, progress, "H | beat note"
+            post,
+            p0,
+            post.sample_names,
+            ndim,
+            rng,
+            options,
+            backend,
+            progress,
+            "H | beat note",
+            derived=derived,
+            gates=Gates(gated=gated),
         )
-        flat = run.flat()
-        pick = rng.choice(flat.shape[0], size=min(options.n_h_draws, flat.shape[0]), replace=False)
-        nat_draws = post.to_params(flat[pick])
-        draws = np.column_stack([nat_draws[n] for n in BEAT_FREE])
-    refined = None
-    if options.method == "tf-crds" and options.refine_free:
-        rd = config.ringdowns
-        idx = select_refinement_points(rd, options.n_refine_points)
-        t_cuts = np.asarray(options.t_cuts_s, float)
-        rows = np.repeat(np.arange(idx.size), t_cuts.size)
-        noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
-        refined = refine_transfer_function(
-            rd.time_s,
-            rd.signal_v[idx],
-            np.tile(t_cuts, idx.size),
-            beat.params,
-            free=options.refine_free,
-            window=options.window,
-            noise_v=noise,
-            rows_of=rows,
-            sens_names=BEAT_FREE,
-        )
-        others = tuple(n for n in BEAT_FREE if n not in options.refine_free)
-        gain, _ = refined.conditional({n: None for n in others})
-        io = [BEAT_FREE.index(n) for n in others]
-        ir = [BEAT_FREE.index(n) for n in options.refine_free]
-        centre = refined.params.as_vector(BEAT_FREE)
-        delta_o = draws[:, io] - centre[io]
-        noise_r = rng.multivariate_normal(np.zeros(len(ir)), refined.cov, size=draws.shape[0])
-        draws[:, ir] = centre[ir] + delta_o @ gain.T + noise_r
-        h_star = refined.params
-        parts = {
-            "others": others,
-            "refined": tuple(options.refine_free),
-            "gain": gain,
-            "records": idx,
-        }
-    else:
-        h_star = beat.params
-        parts = {
-            "others": BEAT_FREE,
-            "refined": (),
-            "gain": np.zeros((0, len(BEAT_FREE))),
-            "records": None,
-        }
-    return beat, refined, h_star, draws, run, parts
+    if options.method != "tf-crds" or not options.refine_free:
+        draws = _pool(beat, post, run, rng, options.n_h_draws)
+        parts = {"others": BEAT_FREE, "refined": (), "records": None, "beat_draws": draws}
+        return beat, None, beat.params, draws, run, parts
+    free = tuple(options.refine_free)
+    while True:
+        refined, idx = _refinement(config, options, beat, free)
+        draws, beat_draws, weights = _joint_draws(beat, post, run, refined, options, rng)
+        ratio = refined.information_ratio()
+        if weights.passed or not ratio:
+            break
+        # the ring-downs overrule the beat note on a parameter they were not asked to refine:
+        # refine the one they know best relative to the beat note too, and weigh again
+        free = free + (max(ratio, key=ratio.get),)
+    parts = {
+        "others": tuple(n for n in BEAT_FREE if n not in free),
+        "refined": free,
+        "refined_asked": tuple(options.refine_free),
+        "records": idx,
+        "beat_draws": beat_draws,
+        "weights": weights,
+    }
+    return beat, refined, posterior_centre(refined.params, draws), draws, run, parts
+
+
+def posterior_centre(params, draws):
+    """H at the mean of the draws in the sampled parametrisation (log of the positive ones).
+
+    The decay times and the line fit are evaluated there: the ring-down weighting can move the
+    parameters the refinement held at the beat note, and first-order propagation about a point
+    away from the posterior's centre would bias every tau by the mean shift.
+    """
+    phi = to_sample(BEAT_FREE, np.asarray(draws, float).T).mean(axis=1)
+    return params.with_vector(from_sample(BEAT_FREE, phi), BEAT_FREE)
 
 
 def fit_transients_noise(rd, records, t_cut_s, tf, window):

@@ -47,6 +47,19 @@ def test_simulate_then_validate(campaign, capsys):
     assert "D2" in out and "D4" in out
 
 
+def test_fit_reports_how_the_ring_downs_moved_each_refined_parameter(campaign, tmp_path, capsys):
+    out = tmp_path / "fits.csv"
+    args = ["fit", str(campaign), "--config", "D2", "--tcut", "4e-6", "-o", str(out)]
+    assert main(args + ["--refine", "f_c_hz,a_r"]) == 0
+    err = capsys.readouterr().err
+    for name in ("f_c_hz", "a_r"):
+        line = next(x for x in err.splitlines() if x.startswith(f"# {name}: beat note"))
+        assert "tension z = " in line and "-> refined" in line
+    with pytest.raises(SystemExit):
+        main(args + ["--refine", "f_c,bogus"])
+    assert "expected a comma-separated list" in capsys.readouterr().err
+
+
 def test_fit_writes_one_row_per_point_and_t_cut(campaign, tmp_path):
     out = tmp_path / "fits.csv"
     assert (

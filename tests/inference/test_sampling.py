@@ -236,6 +236,33 @@ def test_bimodal_ensembles_stuck_in_different_modes_fail_rhat():
     assert r.rhat_max == r.diagnostics["x"]["rhat"]
 
 
+def test_gating_on_predictions_ignores_modes_that_predict_the_same():
+    """Label switching: +x and -x predict the same x^2; gated on x^2 the run passes, on x it fails.
+
+    The budget gates the H sampler on H(f) for this reason (Eq. 2's poles can trade roles).
+    """
+    kw = dict(n_walkers=8, n_steps=3500, max_steps=3500, vectorize=True)
+
+    def square(s):
+        return {"x2": s[:, 0] ** 2}
+
+    on_x2 = run_ensembles(
+        bimodal_logp,
+        bimodal_p0,
+        ("x", "y"),
+        np.random.default_rng(1),
+        derived_fn=square,
+        gates=Gates(gated=("x2", "y")),
+        **kw,
+    )
+    assert on_x2.passed, on_x2.status
+    assert on_x2.diagnostics["x"]["rhat"] > 1.5  # still reported
+    on_all = run_ensembles(
+        bimodal_logp, bimodal_p0, ("x", "y"), np.random.default_rng(1), derived_fn=square, **kw
+    )
+    assert not on_all.passed and "rhat(x)" in on_all.status
+
+
 # ----------------------------------------------------------------------------- determinism
 def test_same_seed_same_chains_whatever_the_global_numpy_state():
     np.random.seed(1)

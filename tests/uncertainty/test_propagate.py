@@ -3,6 +3,7 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from bayes_tfcrds.core.constants import C, wavenumber_cm_to_hz
 from bayes_tfcrds.fit.line import fit_line
@@ -11,8 +12,14 @@ from bayes_tfcrds.fit.ringdown import fit_transients
 from bayes_tfcrds.fit.spectrum import SpectrumData
 from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
+from bayes_tfcrds.physics.transfer_function import transfer_function_derivatives
 from bayes_tfcrds.simulate.campaign import PRESETS
-from bayes_tfcrds.uncertainty.propagate import line_gain, tau_sensitivities
+from bayes_tfcrds.uncertainty.propagate import (
+    h_change,
+    line_gain,
+    tau_h_kernels,
+    tau_sensitivities,
+)
 
 DT, K, T0 = 20e-9, 8192, -2e-6
 T = T0 + DT * np.arange(K)
@@ -45,6 +52,26 @@ def test_tau_sensitivities_match_refits():
         np.testing.assert_allclose(s[:, j], fd, rtol=2e-3, atol=1e-6 * np.max(np.abs(fd)))
     # f_c matters most at short tau (the slow tail): the map is not trivially constant
     assert abs(s[0, 0] / taus[0]) > 3 * abs(s[2, 0] / taus[2])
+
+
+@pytest.mark.parametrize("window", ["extinction", "letter"])
+def test_function_space_kernels_reproduce_parameter_sensitivities_and_refits(window):
+    """d tau/d H(f) times dH/dtheta is d tau/d theta; a finite H draw moves tau as refits do."""
+    rng = np.random.default_rng(2)
+    taus = np.array([3.7e-6, 8e-6, 30e-6])
+    sig = _data(rng, taus)
+    tc = np.array([2e-6, 4e-6, 8e-6])
+    base = fit_transients(T, sig, tc, "tf-crds", TF, window)
+    s = tau_sensitivities(T, sig, tc, base.tau_s, base.amplitude_v, TF, NAMES, window)
+    kern = tau_h_kernels(T, tc, base.tau_s, base.amplitude_v, TF, window)
+    for rows, f_hz, k in kern.groups:
+        via_h = (transfer_function_derivatives(f_hz, TF, NAMES) @ k.T).real.T
+        np.testing.assert_allclose(via_h, s[rows], rtol=1e-7)  # same chain rule, other order
+    draw = TF.as_vector(NAMES) * (1 + np.array([0.02, 0.01, 0.03, -0.02]))
+    moved = kern.shifts(h_change(draw[None, :], NAMES, TF), taus.size)[0]
+    full = fit_transients(T, sig, tc, "tf-crds", TF.with_vector(draw, NAMES), window).tau_s
+    # a 1-3 % H move: the first-order shift agrees with the refit to 3 % (second order)
+    np.testing.assert_allclose(moved, full - base.tau_s, rtol=0.03)
 
 
 def test_line_gain_matches_refits():

@@ -40,8 +40,21 @@ def test_budget_command_writes_every_output_and_passes_the_gates(small_bundle, t
     shares = [c["share"] for c in s["components"]]
     assert abs(sum(shares) - 1) < 1e-9
     names = [c["name"] for c in s["components"]]
-    for needed in ("ring-down noise", "H: f_c_hz", "t_cut choice", "line-shape model"):
+    for needed in (
+        "ring-down noise",
+        "H: f_c_hz",
+        "H: posterior of",
+        "H model form",
+        "t_cut choice",
+        "line-shape model",
+    ):
         assert any(n.startswith(needed) for n in names), needed
+    # how the ring-downs updated the beat note, in budget.json and budget.md
+    ref = s["transfer_function"]["refinement"]["parameters"]["f_c_hz"]
+    assert ref["refined_u"] < ref["beat_note_u"] and np.isfinite(ref["z"])
+    assert "H: beat note updated by the ring-downs" in (out / "budget.md").read_text()
+    form = s["transfer_function"]["model_form"]
+    assert 0 <= form["weight_n_r_free"] < 0.5 and not form["asks_for_free_order"]  # n_r = 2 truth
     for f in (
         "budget.md",
         "budget.csv",
@@ -98,6 +111,13 @@ def test_stated_u_matches_the_scatter_over_simulations():
 def test_noise_row_matches_the_noise_only_scatter():
     # the same beat-note measurement in every replica: only ring-down noise varies, and it reaches
     # A through the line fit and through the refined H (the two ring-down rows of the budget)
+    # since the joint H posterior weighs the beat-note draws by the ring-down likelihood, ring-down
+    # noise also moves the other H parameters: the noise-only scatter lies between the rows it
+    # drives directly and the whole statistical u (the beat-note part of which does not vary here)
     rep = replicate(60, seed=6, preset="letter-D4", campaign=TINY, options=FAST, fixed_beat=True)
-    ratio = rep.ratio_scatter_to_noise_row()
-    assert 0.8 < ratio < 1.2, ratio
+    scatter = float(np.std(rep.area, ddof=1))
+    assert 0.8 * np.mean(rep.u_noise) < scatter < 1.2 * np.mean(rep.u_stat), (
+        scatter,
+        np.mean(rep.u_noise),
+        np.mean(rep.u_stat),
+    )

@@ -1,0 +1,169 @@
+"""The multi-ring-down refinement as an update of the beat note (letter Appendix B).
+
+Data: ring-downs through exact rational chains (no FFT, so the truth does not share the forward
+model's discretisation) and a beat note of the same chain with 0.15 % noise per point.
+"""
+
+from dataclasses import replace
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bayes_tfcrds.fit import refine as refine_module
+from bayes_tfcrds.fit.beat_note import fit_beat_note
+from bayes_tfcrds.fit.h_calibration import h_model_forms
+from bayes_tfcrds.fit.refine import HPrior, refine_transfer_function, ringdown_log_likelihood
+from bayes_tfcrds.physics.detection_chain import chain_from_tf
+from bayes_tfcrds.physics.transfer_function import TFParams, transfer_function
+
+DT, K, T0 = 20e-9, 8192, -2.0e-6
+T = T0 + DT * np.arange(K)
+NAMES = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")
+TAUS = np.array([4e-6, 8e-6, 16e-6, 32e-6])
+T_CUTS = np.array([2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6])
+ROWS = np.repeat(np.arange(TAUS.size), T_CUTS.size)
+SIGMA = 1.3e-4  # V, the letter's averaged record noise
+# a fast main pole with a weak slow resonance: the ring-downs hardly constrain f_c here
+POLE = TFParams(f_c_hz=1.6e7, a_r=0.036, f_r_hz=6.5e5, gamma_r=1.47)
+# the letter's shape: a slow tail beside a fast resonant main path (f_c well constrained)
+TAIL = TFParams(f_c_hz=5.3e4, a_r=24.7, f_r_hz=5.0e6, gamma_r=0.7)
+
+
+def _campaign(tf, seed):
+    """Ring-down records (V), the beat-note fit of the same chain, and the records' noise (V)."""
+    rng = np.random.default_rng(seed)
+    clean = 0.002 + 0.6 * chain_from_tf(tf).ringdown_response(T, TAUS)
+    sig = clean + SIGMA * rng.standard_normal((TAUS.size, K))
+    f = np.logspace(3, np.log10(4e7), 60)
+    h = np.abs(transfer_function(f, tf))
+    u = 1.5e-3 * h
+    beat_data = SimpleNamespace(f_hz=f, h_mag=h + u * rng.standard_normal(f.size), h_mag_u=u)
+    return sig, fit_beat_note(beat_data, free=NAMES), np.full(TAUS.size, SIGMA)
+
+
+def _refine(sig, start, noise, prior=None, **kw):
+    return refine_transfer_function(
+        T, sig, np.tile(T_CUTS, TAUS.size), start, noise_v=noise, rows_of=ROWS, prior=prior, **kw
+    )
+
+
+def test_update_keeps_what_the_ring_downs_cannot_constrain():
+    """Today's overwrite sends f_c of a fast pole far off; the update keeps the beat note's."""
+    sig, beat, noise = _campaign(POLE, 3)
+    u_beat = float(np.sqrt(beat.param_cov[0, 0]))
+    new = _refine(sig, beat.params, noise, prior=HPrior.from_beat(beat))
+    assert abs(new.params.f_c_hz - POLE.f_c_hz) < 3 * new.stderr["f_c_hz"]
+    assert new.stderr["f_c_hz"] <= u_beat * (1 + 1e-9)  # an update never loses information
+    old = _refine(sig, beat.params, noise)  # ring-downs alone (the letter's refinement)
+    assert abs(old.params.f_c_hz - POLE.f_c_hz) > 10 * u_beat
+    # its draws in the sampled (log) parametrisation stay physical however wide the posterior
+    draws = old.draw_given(np.zeros((500, 0)), (), np.random.default_rng(0))
+    assert old.stderr["f_c_hz"] > old.params.f_c_hz / 10 and np.all(draws > 0)
+
+
+def test_ring_downs_sharpen_what_they_constrain():
+    sig, beat, noise = _campaign(TAIL, 5)
+    new = _refine(sig, beat.params, noise, prior=HPrior.from_beat(beat))
+    u_beat = float(np.sqrt(beat.param_cov[0, 0]))
+    assert new.stderr["f_c_hz"] < 0.3 * u_beat
+    assert abs(new.params.f_c_hz - TAIL.f_c_hz) < 3 * new.stderr["f_c_hz"]
+    assert new.converged and abs(new.chi2_red - 1) < 0.05
+
+
+def test_tension_z_is_standard_normal_when_beat_note_and_ring_downs_agree():
+    """16 noise draws of beat note and ring-downs: sum z^2 follows chi2(16)."""
+    z = []
+    for seed in range(16):
+        sig, beat, noise = _campaign(TAIL, 100 + seed)
+        z.append(_refine(sig, beat.params, noise, prior=HPrior.from_beat(beat)).z[0])
+    c2 = float(np.sum(np.square(z)))
+    assert stats.chi2.ppf(0.001, 16) < c2 < stats.chi2.ppf(0.999, 16), z
+
+
+def test_tension_is_found_and_signed():
+    """A beat note 6 sd above the ring-downs' f_c: the update moves down, z < -3, a finding."""
+    sig, beat, noise = _campaign(TAIL, 7)
+    u = float(np.sqrt(beat.param_cov[0, 0]))
+    prior = HPrior.from_beat(beat)
+    shifted = replace(prior, mean=prior.mean + np.array([6 * u, 0, 0, 0]))
+    start = beat.params.with_vector(shifted.mean, NAMES)
+    ref = _refine(sig, start, noise, prior=shifted)
+    t = ref.tension()["f_c_hz"]
+    assert t["z"] < -3 and ref.in_tension and t["shift_in_beat_u"] < -3
+    assert any("finding" in line for line in refine_module.tension_lines(ref))
+
+
+def test_shared_record_parameters_equal_the_multiplicity_weighted_fit():
+    """Extinction window: one row per record with summed weights is the composite fit itself."""
+    sig, beat, noise = _campaign(TAIL, 9)
+    rows = refine_module._layout(
+        T, sig, np.tile(T_CUTS, TAUS.size), ROWS, noise[ROWS, None] * np.ones(K), "extinction"
+    )
+    one = refine_module._collapsed(rows, once=False)
+    tau = np.array(TAUS)
+    c_rows = refine_module._evaluate(rows, beat.params, ("f_c_hz",), tau)
+    c_one = refine_module._evaluate(one, beat.params, ("f_c_hz",), tau)
+    np.testing.assert_allclose(c_rows[1], c_one[1], rtol=1e-10)  # tau per record
+    assert c_rows[0] == pytest.approx(c_one[0], rel=1e-10)  # chi2
+    a_rows = np.einsum("npk,nqk,nk->pq", c_rows[4], c_rows[4], rows.wm)
+    a_one = np.einsum("npk,nqk,nk->pq", c_one[4], c_one[4], one.wm)
+    np.testing.assert_allclose(a_rows, a_one, rtol=1e-8)
+
+
+def test_letter_window_shares_amplitude_across_truncations():
+    """Letter window: each truncation's amplitude is B exp(-t_k/tau) of one record amplitude.
+
+    With a chain of ~10 ns memory the flat history before t_cut is harmless, so the shared fit must
+    reach the noise (a per-truncation B mis-scaled by exp(-t_k/tau) would not).
+    """
+    fast = TFParams(f_c_hz=2.0e7, a_r=0.01, f_r_hz=5.0e6, gamma_r=0.7)
+    sig, beat, noise = _campaign(fast, 11)
+    ref = _refine(sig, beat.params, noise, prior=HPrior.from_beat(beat), window="letter")
+    assert ref.converged and abs(ref.chi2_red - 1) < 0.05
+    np.testing.assert_allclose(ref.tau_s, TAUS, rtol=2e-3)
+
+
+def test_ring_down_likelihood_matches_refits():
+    """The first-order (function-space) likelihood against full refits at the moved H."""
+    sig, beat, noise = _campaign(TAIL, 13)
+    ref = _refine(sig, beat.params, noise, prior=HPrior.from_beat(beat))
+    centre = ref.params.as_vector(NAMES)
+    steps = np.array([[0, 1e-2, 0, 0], [0, 0, 1e-2, 0], [0, 0, 0, 3e-2]])
+    draws = centre * (1 + steps)
+    ll = ringdown_log_likelihood(ref, draws, NAMES)
+    layout = ref.likelihood_layout
+    chi0 = refine_module._evaluate(layout, ref.params, ("f_c_hz",), ref.tau_s)[0]
+    full = [
+        -0.5
+        * (
+            refine_module._evaluate(
+                layout, ref.params.with_vector(d, NAMES), ("f_c_hz",), ref.tau_s
+            )[0]
+            - chi0
+        )
+        for d in draws
+    ]
+    np.testing.assert_allclose(ll, full, rtol=0.02, atol=0.05)
+    assert min(full) < -2  # the steps are large enough to matter
+
+
+@pytest.mark.parametrize(("n_r", "asks"), [(2.0, False), (1.7, True)])
+def test_beat_note_decides_whether_the_order_n_r_is_free(n_r, asks):
+    """BIC weight of the fractional-order form: small for a rational chain, ~1 for n_r = 1.7."""
+    tf = replace(TAIL, n_r=n_r)
+    rng = np.random.default_rng(17)
+    f = np.logspace(3, np.log10(4e7), 60)
+    h = np.abs(transfer_function(f, tf))
+    u = 1.5e-3 * h
+    config = SimpleNamespace(
+        transfer_function=SimpleNamespace(f_hz=f, h_mag=h + u * rng.standard_normal(60), h_mag_u=u)
+    )
+    beat = fit_beat_note(config.transfer_function, free=NAMES)
+    forms = h_model_forms(config, beat)
+    assert forms.asks_for_free_order is asks
+    if asks:
+        assert forms.weight_free > 0.99 and abs(forms.free_fit.params.n_r - n_r) < 0.02
+    else:
+        assert forms.weight_free < 0.5  # one more parameter, no better fit: BIC penalises it

@@ -1,0 +1,55 @@
+"""The shipped budget on chains from the zoo (both regimes Eq. 2 covers), against the truth.
+
+The full acceptance run is ``benchmarks/chain_zoo.py`` (>= 50 chains); here one chain of the
+regime the presets do not cover (a fast main pole beside a slower, weak resonance), on a reduced
+campaign (21 modes, the letter's record length, sampling and noise).
+"""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayes_tfcrds.fit.h_calibration import BEAT_FREE
+from bayes_tfcrds.physics.transfer_function import SUPPORT
+from bayes_tfcrds.simulate.campaign import Campaign, ChainPreset, simulate_campaign
+from bayes_tfcrds.simulate.zoo import draw_chain
+from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
+
+CAMPAIGN = replace(Campaign(), n_points=21)
+
+
+@pytest.fixture(scope="module")
+def pole_budget():
+    rng = np.random.default_rng([7, 5])
+    tf = draw_chain(rng, "pole")
+    assert tf.f_r_hz < tf.f_c_hz  # the resonance below a MHz pole: the presets' opposite
+    bundle, truth = simulate_campaign([ChainPreset("Z", "zoo chain", tf)], rng, CAMPAIGN)
+    res = run_budget(bundle, bundle.configs["Z"], BudgetOptions(), np.random.default_rng(2))
+    return bundle, truth, res
+
+
+def test_budget_passes_and_keeps_every_draw_physical(pole_budget):
+    _, _, res = pole_budget
+    assert res.passed, res.status
+    draws = res.samples["h_draws"]
+    for i, name in enumerate(BEAT_FREE):
+        lo, hi = SUPPORT[name]
+        assert np.all((draws[:, i] > lo) & (draws[:, i] < hi)), name
+    ref = res.summary["transfer_function"]["refinement"]
+    assert np.isfinite(ref["parameters"]["f_c_hz"]["z"]) and ref["converged"]
+    assert res.summary["diagnostics"]["h_ring_down_weights"]["passed"]
+
+
+def test_line_area_and_decay_times_agree_with_the_truth(pole_budget):
+    bundle, truth, res = pole_budget
+    a = res.summary["line_area"]
+    assert abs(a["value_si"] - truth["line"]["line_area_hz_per_m"]) < 3 * a["u_si"]
+    tau_true = np.asarray(truth["configs"]["Z"]["tau_s"])
+    nu = bundle.configs["Z"].ringdowns.nu_hz
+    rows = [r for r in res.tau_table if np.isclose(r[1], 4e-6)]
+    idx = np.searchsorted(nu, [r[0] for r in rows])
+    pulls = np.array([(r[2] - tau_true[i]) / r[5] for r, i in zip(rows, idx)])
+    # 2 u covers 95 % of points when u is right; 80 % leaves room for 19 correlated points
+    assert np.mean(np.abs(pulls) < 2) >= 0.8 and np.all(np.abs(pulls) < 4), pulls
+    assert all(r[4] > 0 for r in rows)  # the H part of u(tau) is there
