@@ -173,6 +173,32 @@ def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np
     return good[np.sort(pick)]
 
 
+def refine_on_records(
+    config, start, free, window, t_cuts_s, n_points, prior=None, sens_names=()
+) -> tuple:
+    """The multi-ring-down refinement on ``n_points`` records spanning the decay times.
+
+    Each record truncated at every t_cut of ``t_cuts_s`` (s), starting from the TFParams
+    ``start``; returns (RefinedTF, indices of the records used).
+    """
+    rd = config.ringdowns
+    idx = select_refinement_points(rd, n_points)
+    t_cuts = np.asarray(t_cuts_s, float)
+    refined = refine_transfer_function(
+        rd.time_s,
+        rd.signal_v[idx],
+        np.tile(t_cuts, idx.size),
+        start,
+        free=free,
+        window=window,
+        noise_v=None if rd.noise_v is None else np.asarray(rd.noise_v)[idx],
+        rows_of=np.repeat(np.arange(idx.size), t_cuts.size),
+        prior=prior,
+        sens_names=sens_names,
+    )
+    return refined, idx
+
+
 def calibrate(
     config,
     t_cuts_s=DEFAULT_T_CUTS,
@@ -192,22 +218,8 @@ def calibrate(
     beat = beat_note_fit(config, variant=variant, window=window)
     if not refine:
         return Calibration(beat=beat, refined=None)
-    rd = config.ringdowns
-    idx = select_refinement_points(rd, n_points)
-    t_cuts = np.asarray(t_cuts_s, float)
-    rows = np.repeat(np.arange(idx.size), t_cuts.size)
-    noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
-    refined = refine_transfer_function(
-        rd.time_s,
-        rd.signal_v[idx],
-        np.tile(t_cuts, idx.size),
-        beat.params,
-        free=free,
-        window=window,
-        noise_v=noise,
-        rows_of=rows,
-        prior=HPrior.from_beat(beat) if update else None,
-    )
+    prior = HPrior.from_beat(beat) if update else None
+    refined, _ = refine_on_records(config, beat.params, free, window, t_cuts_s, n_points, prior)
     return Calibration(beat=beat, refined=refined)
 
 

@@ -398,18 +398,15 @@ def _fit_taus(layout: _Layout, tf, tau0):
     return _gauss_newton(sums, s1_all, sy_all, tau0)
 
 
-def _evaluate(layout: _Layout, tf, free, tau_start):
-    """Re-fit tau per record under ``tf``; return chi2, tau, converged, residuals, reduced J.
+def _profiled(layout: _Layout, g, dg):
+    """B per record (shared by its truncations; b with it), the residuals and nuisance columns.
 
-    The Jacobian is with respect to the natural parameters ``free``, projected orthogonally to
-    each record's own B, b and tau directions over all its truncations.
+    For the model shapes g (and dg/dtau) of every row: returns (B (m,), residuals (n, k),
+    columns [g, 1, B dg/dtau] (n, 3, k)).
     """
-    tau, conv = _fit_taus(layout, tf, tau_start)
-    g, dg, dgt = _responses(layout, tau, tf, names=free)
     wm, ro = layout.wm, layout.rows_of
     y_rows = layout.y[ro]
-    ones = (wm > 0).astype(float)
-    sums = _per_record(
+    s1, sg, sy, sgg, sgy = _per_record(
         layout,
         np.stack(
             [
@@ -421,13 +418,25 @@ def _evaluate(layout: _Layout, tf, free, tau_start):
             ],
             axis=1,
         ),
-    )
-    s1, sg, sy, sgg, sgy = sums.T
+    ).T
     det = s1 * sgg - sg * sg
     amp = (s1 * sgy - sg * sy) / det
     off = (sgg * sy - sg * sgy) / det
     resid = np.where(wm > 0, y_rows - amp[ro, None] * g - off[ro, None], 0.0)
-    cols = np.stack([g, ones, amp[ro, None] * dg], axis=1)  # (n, 3, k)
+    cols = np.stack([g, (wm > 0).astype(float), amp[ro, None] * dg], axis=1)  # (n, 3, k)
+    return amp, resid, cols
+
+
+def _evaluate(layout: _Layout, tf, free, tau_start):
+    """Re-fit tau per record under ``tf``; return chi2, tau, converged, residuals, reduced J.
+
+    The Jacobian is with respect to the natural parameters ``free``, projected orthogonally to
+    each record's own B, b and tau directions over all its truncations.
+    """
+    tau, conv = _fit_taus(layout, tf, tau_start)
+    g, dg, dgt = _responses(layout, tau, tf, names=free)
+    wm, ro = layout.wm, layout.rows_of
+    amp, resid, cols = _profiled(layout, g, dg)
     jth = amp[ro, None, None] * dgt  # (n, p, k)
     ctc = _per_record(layout, np.einsum("nak,nbk,nk->nab", cols, cols, wm))
     ctj = _per_record(layout, np.einsum("nak,npk,nk->nap", cols, jth, wm))
@@ -706,26 +715,7 @@ def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -
     draws = np.atleast_2d(np.asarray(draws, float))
     wm, ro, t = layout.wm, layout.rows_of, layout.t
     g, dg, _ = _responses(layout, tau, tf)
-    y_rows = layout.y[ro]
-    ones = (wm > 0).astype(float)
-    s1, sg, sy, sgg, sgy = _per_record(
-        layout,
-        np.stack(
-            [
-                wm.sum(-1),
-                np.einsum("ij,ij->i", wm, g),
-                np.einsum("ij,ij->i", wm, y_rows),
-                np.einsum("ij,ij,ij->i", wm, g, g),
-                np.einsum("ij,ij,ij->i", wm, g, y_rows),
-            ],
-            axis=1,
-        ),
-    ).T
-    det = s1 * sgg - sg * sg
-    amp = (s1 * sgy - sg * sy) / det
-    off = (sgg * sy - sg * sgy) / det
-    resid = np.where(wm > 0, y_rows - amp[ro, None] * g - off[ro, None], 0.0)
-    cols = np.stack([g, ones, amp[ro, None] * dg], axis=1)  # (n, 3, k)
+    amp, resid, cols = _profiled(layout, g, dg)
     ctc_inv = np.linalg.inv(_per_record(layout, np.einsum("nak,nbk,nk->nab", cols, cols, wm)))
     uniq, group = np.unique(layout.t_cut, return_inverse=True)
     grids = model_grids(float(t[0]), float(t[1] - t[0]), t.size, uniq, tf, layout.window)

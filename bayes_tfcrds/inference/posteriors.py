@@ -13,17 +13,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, TFParams, transfer_function_array
+from bayes_tfcrds.physics.transfer_function import (
+    PARAM_NAMES,
+    SUPPORT,
+    TFParams,
+    transfer_function_array,
+)
 
 LOG_PARAMS = {"f_c_hz", "f_r_hz", "gamma_r"}
-H_PRIOR = {
-    "f_c_hz": (1.0, 1e10),
-    "a_r": (-0.99, 1e4),
-    "f_r_hz": (1.0, 1e10),
-    "gamma_r": (1e-3, 1e3),
-    "n_r": (0.5, 2.0),
-    "scale": (0.0, 10.0),
-}
+# the physical domain of every H parameter; a causal fractional order n_r <= 2; the scale K
+H_PRIOR = {**SUPPORT, "n_r": (0.5, 2.0), "scale": (0.0, 10.0)}
 
 
 @dataclass(frozen=True)

@@ -41,11 +41,11 @@ from bayes_tfcrds.fit.h_calibration import (
     BEAT_FREE,
     DEFAULT_T_CUTS,
     h_model_forms,
-    select_refinement_points,
+    refine_on_records,
 )
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_of
-from bayes_tfcrds.fit.refine import HPrior, refine_transfer_function
+from bayes_tfcrds.fit.refine import HPrior
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.physics.linedata import load_line
@@ -525,19 +525,15 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
         rd = inp.config.ringdowns
         h_alt = alt.params
         if free:
-            idx = select_refinement_points(rd, options.n_refine_points)
-            t_cuts = np.asarray(options.t_cuts_s, float)
-            h_alt = refine_transfer_function(
-                rd.time_s,
-                rd.signal_v[idx],
-                np.tile(t_cuts, idx.size),
+            h_alt = refine_on_records(
+                inp.config,
                 alt.params,
-                free=free,
-                window=options.window,
-                noise_v=None if rd.noise_v is None else np.asarray(rd.noise_v)[idx],
-                rows_of=np.repeat(np.arange(idx.size), t_cuts.size),
-                prior=HPrior.from_beat(alt),
-            ).params
+                free,
+                options.window,
+                options.t_cuts_s,
+                options.n_refine_points,
+                HPrior.from_beat(alt),
+            )[0].params
         f = fit_ringdowns(rd, [options.t_cut_s], "tf-crds", h_alt, options.window)
         spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
         a_free = fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area

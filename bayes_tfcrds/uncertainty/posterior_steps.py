@@ -14,11 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit, select_refinement_points
+from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit, refine_on_records
 from bayes_tfcrds.fit.refine import (
     HPrior,
     from_sample,
-    refine_transfer_function,
     ringdown_log_likelihood,
     sample_jacobian,
     to_sample,
@@ -203,24 +202,16 @@ def _pool(beat, post, run, rng, size: int) -> np.ndarray:
 
 def _refinement(config, options, beat, free):
     """The multi-ring-down update of ``free``; returns (refinement, records used)."""
-    rd = config.ringdowns
-    idx = select_refinement_points(rd, options.n_refine_points)
-    t_cuts = np.asarray(options.t_cuts_s, float)
-    rows = np.repeat(np.arange(idx.size), t_cuts.size)
-    noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
-    refined = refine_transfer_function(
-        rd.time_s,
-        rd.signal_v[idx],
-        np.tile(t_cuts, idx.size),
+    return refine_on_records(
+        config,
         beat.params,
-        free=free,
-        window=options.window,
-        noise_v=noise,
-        rows_of=rows,
-        sens_names=BEAT_FREE,
-        prior=HPrior.from_beat(beat),
+        free,
+        options.window,
+        options.t_cuts_s,
+        options.n_refine_points,
+        HPrior.from_beat(beat),
+        BEAT_FREE,
     )
-    return refined, idx
 
 
 def _joint_draws(beat, post, run, refined, options, rng):
