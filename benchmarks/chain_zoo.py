@@ -70,6 +70,13 @@ def run_chain(args) -> dict:
     tau = np.array([r[2] for r in rows])
     u_tau = np.array([r[5] for r in rows])
     pull_tau = (tau - tau_true[idx]) / u_tau
+    # per point, for the diagnosis of any excess: pull, tau/true, the noise and H parts of u
+    points = {
+        "pull": pull_tau.round(4).tolist(),
+        "tau_true_s": tau_true[idx].tolist(),
+        "u_noise_s": [r[3] for r in rows],
+        "u_h_s": [r[4] for r in rows],
+    }
     summary = res.summary
     a_key = "line_area" if res.passed else None
     a_entry = summary[a_key] if a_key else summary["unconverged_estimates"]["line_area"]
@@ -89,6 +96,7 @@ def run_chain(args) -> dict:
         f_c_beat=ref["beat_note"],
         f_c_refined=ref["refined"],
         f_c_z=ref["z"],
+        points=points,
     )
     return rec
 

@@ -42,6 +42,9 @@ class TFFit:
     h_mag_u: np.ndarray
     residuals: np.ndarray = field(repr=False)
     weighted: bool = True
+    # the other distinct local optima of the beat-note chi2 within MODE_DCHI2 of this one, best
+    # first (the resonant term makes |H| multimodal: a sampler needs to know where the modes are)
+    alternatives: tuple = field(default=(), repr=False)
 
     @property
     def names(self):
@@ -60,6 +63,11 @@ class TFFit:
     @property
     def chi2_red(self) -> float:
         return self.chi2 / max(self.dof, 1)
+
+
+MODE_DCHI2 = 50.0  # chi2 above the best beyond which a local optimum holds no posterior mass
+MAX_MODES = 6  # distinct optima kept (best included)
+MAX_POLISHED = 12  # coarse solutions polished (the starts mostly fall into a few basins)
 
 
 def _default_starts(f_hz, h_mag, variant):
@@ -173,7 +181,7 @@ def fit_beat_note(
         except ValueError:
             return None
 
-    # coarse pass from every start, then polish the three best
+    # coarse pass from every start, then polish the best and every other basin near it
     coarse = []
     for s in starts:
         x0 = np.append(
@@ -185,15 +193,39 @@ def fit_beat_note(
         if sol is not None:
             coarse.append((sol.cost, sol, s))
     coarse.sort(key=lambda c: c[0])
-    best = None
-    for _, sol0, s in coarse[:3]:
-        sol = solve(sol0.x, s, 1e-14, 4000) if len(starts) > 1 else sol0
-        if sol is not None and (best is None or sol.cost < best[0].cost):
-            best = (sol, s)
-    if best is None:
+    if not coarse:
         raise RuntimeError("the beat-note fit failed from every starting point")
-    sol, base = best
-    params, scale = unpack(sol.x, base)
+    polished = []
+    for i, (cost, sol0, s) in enumerate(coarse):
+        if i >= MAX_POLISHED or (i >= 3 and 2.0 * (cost - coarse[0][0]) > 2.0 * MODE_DCHI2):
+            break
+        sol = solve(sol0.x, s, 1e-14, 4000) if len(starts) > 1 else sol0
+        if sol is not None:
+            polished.append((sol, s))
+    if not polished:
+        raise RuntimeError("the beat-note fit failed from every starting point")
+    polished.sort(key=lambda c: c[0].cost)
+    fits = []
+    for sol, base in polished:
+        if 2.0 * (sol.cost - polished[0][0].cost) > MODE_DCHI2 or len(fits) >= MAX_MODES:
+            break
+        params, scale = unpack(sol.x, base)
+        fit = _fit_at(params, scale, free, f, y, u, sig, weighted)
+        if not any(same_mode(fit, g) for g in fits):
+            fits.append(fit)
+    return replace(fits[0], alternatives=tuple(fits[1:]))
+
+
+def same_mode(a: TFFit, b: TFFit) -> bool:
+    """Whether two optima are one basin: within 3 sd of each other in every parameter."""
+    da = np.append(a.params.as_vector(a.free), a.scale)
+    db = np.append(b.params.as_vector(b.free), b.scale)
+    sd = np.sqrt(np.maximum(np.diag(a.cov), np.diag(b.cov)))
+    return bool(np.all(np.abs(da - db) <= 3.0 * sd))
+
+
+def _fit_at(params, scale, free, f, y, u, sig, weighted) -> TFFit:
+    """The fit result at an optimum: chi2, residuals and the Gauss-Newton covariance."""
     # covariance in natural units: Jacobian by central differences in natural parameters
     theta = np.append(params.as_vector(free), scale)
 

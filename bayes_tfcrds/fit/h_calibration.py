@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note
+from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note, same_mode
 from bayes_tfcrds.fit.refine import HPrior, RefinedTF, refine_transfer_function
 from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns, fit_transients
 from bayes_tfcrds.physics.transfer_function import TFParams
@@ -91,7 +91,12 @@ def beat_note_fit(
             return np.inf
         return float(np.sum(f.chi2)) if np.all(f.converged) else np.inf
 
-    return min((best, alt), key=ringdown_chi2)
+    chosen = min((best, alt), key=ringdown_chi2)
+    if chosen is best:
+        return best
+    # the other optima of |H| stay known to the sampler (the posterior keeps only this branch)
+    others = tuple(f for f in (best, *best.alternatives) if not same_mode(f, alt))
+    return replace(alt, alternatives=others)
 
 
 @dataclass(frozen=True)
@@ -220,6 +225,14 @@ def calibrate(
         return Calibration(beat=beat, refined=None)
     prior = HPrior.from_beat(beat) if update else None
     refined, _ = refine_on_records(config, beat.params, free, window, t_cuts_s, n_points, prior)
+    if not refined.converged:
+        # a refinement that did not converge is not an H: stop rather than fit every decay time
+        # with it (the beat-note H stays available)
+        raise AnalysisError(
+            f"configuration {config.name!r}: the ring-down refinement of H ({', '.join(free)}) did "
+            "not converge; refine fewer parameters, or use the beat-note H alone (bayes-tfcrds "
+            "fit --transfer-function beat)"
+        )
     return Calibration(beat=beat, refined=refined)
 
 

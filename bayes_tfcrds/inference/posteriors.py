@@ -56,10 +56,11 @@ class BeatNotePosterior:
     def to_params(self, x) -> dict:
         """Natural-unit parameter arrays from samples x (..., ndim)."""
         x = np.asarray(x, float)
-        out = {
-            n: (np.exp(x[..., i]) if n in LOG_PARAMS else x[..., i])
-            for i, n in enumerate(self.free)
-        }
+        with np.errstate(over="ignore"):  # far proposals overflow to inf, which the prior refuses
+            out = {
+                n: (np.exp(x[..., i]) if n in LOG_PARAMS else x[..., i])
+                for i, n in enumerate(self.free)
+            }
         out["scale"] = x[..., -1]
         return out
 
