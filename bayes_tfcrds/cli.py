@@ -7,6 +7,7 @@ bad input as one clear message naming what is wrong, with exit status 1 or 2.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -65,12 +66,14 @@ def cmd_validate(args) -> int:
 
 def cmd_fit(args) -> int:
     from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+    from bayes_tfcrds.fit.line_analysis import check_t_cuts
     from bayes_tfcrds.fit.refine import tension_lines
 
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     cal = None
     try:
+        check_t_cuts(config, args.tcut)
         if args.method == "tf-crds":
             cal = calibrate(
                 config, window=args.window, refine=args.h == "refined", free=args.refine
@@ -91,6 +94,17 @@ def cmd_fit(args) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 1
     atomic_write_text(Path(args.output), fits.to_csv())
+    statuses = [row[-1] for row in fits.rows()]
+    n_unconv = statuses.count("not-converged")
+    if n_unconv:
+        tried = len(statuses) - statuses.count("clipped") - statuses.count("saturated")
+        print(
+            f"{'FAILED' if n_unconv == tried else 'warning'}: {n_unconv} of {tried} decay-time "
+            "fits did not converge (status not-converged in the CSV)",
+            file=sys.stderr,
+        )
+        if n_unconv == tried:
+            return 3
     n_clip = int(fits.clipped.sum())
     n_sat = int(np.sum(config.ringdowns.saturated))
     n_short = sum(row[-1] == "record-short" for row in fits.rows())
@@ -124,9 +138,13 @@ def cmd_simulate(args) -> int:
         for text in args.effect or []:
             name, params = parse_effect(text)
             effects[name] = params
+        presets = args.preset or ["letter-D2"]
+        repeated = sorted({p for p in presets if presets.count(p) > 1})
+        if repeated:
+            raise ValueError(f"--preset {', '.join(repeated)} given more than once")
         campaign = Campaign(n_points=args.points, n_samples=args.samples)
         rng = np.random.default_rng(args.seed)
-        bundle, truth = simulate_campaign(args.preset or ["letter-D2"], rng, campaign, effects)
+        bundle, truth = simulate_campaign(presets, rng, campaign, effects)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
@@ -228,7 +246,7 @@ def cmd_budget(args) -> int:
     from bayes_tfcrds.fit.line_analysis import LineFitError
     from bayes_tfcrds.fit.refine import tension_lines
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
-    from bayes_tfcrds.uncertainty.outputs import write_outputs
+    from bayes_tfcrds.uncertainty.outputs import failed_banner, write_outputs
 
     bundle = _load(args.file)
     config = _config(bundle, args.config)
@@ -267,6 +285,8 @@ def cmd_budget(args) -> int:
             file=sys.stderr,
         )
         return 130
+    if not res.passed:
+        print(failed_banner(res))
     print(res.budget_a.to_markdown())
     if res.refined is not None:
         for line in tension_lines(res.refined):
@@ -324,6 +344,14 @@ def cmd_discover(args) -> int:
     bundle = _load(args.file)
     config = _config(bundle, args.config)
     try:
+        if not (np.isfinite(args.threshold) and args.threshold > 0):
+            raise ValueError(f"--threshold must be a Delta BIC > 0, got {args.threshold}")
+        if args.tcut:
+            from bayes_tfcrds.fit.line_analysis import check_t_cuts
+
+            check_t_cuts(config, args.tcut)
+            if min(args.tcut) <= 0:
+                raise ValueError("t_cut must be > 0 s for discovery (its gap metrics need it)")
         start = parse_model(args.start)
         result = discover(
             bundle,
@@ -609,8 +637,38 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
+    from bayes_tfcrds.output.files import OutputPathError
+
     args = build_parser().parse_args(argv)
-    return int(args.func(args) or 0)
+    try:
+        _check_output(args)
+        return int(args.func(args) or 0)
+    except OutputPathError as exc:  # the output rule (output.files.check_replaceable), any command
+        print(f"error: {_printable(str(exc))}", file=sys.stderr)
+        return 2
+
+
+_FOLDER_COMMANDS = ("cmd_budget", "cmd_study", "cmd_discover", "cmd_demo")
+
+
+def _check_output(args) -> None:
+    """Refuse an unusable -o before any work (not after minutes of sampling)."""
+    from bayes_tfcrds.output.files import OutputPathError, check_replaceable
+
+    out = getattr(args, "output", None)
+    if out is None:
+        return
+    path = Path(os.path.abspath(out))
+    if args.func.__name__ in _FOLDER_COMMANDS:
+        if os.path.lexists(path) and not path.is_dir():
+            raise OutputPathError(f"{path} exists and is not a folder; -o names the output folder")
+        return
+    check_replaceable(path)
+
+
+def _printable(text: str) -> str:
+    """A message with control characters (newlines, ANSI escapes from names) shown escaped."""
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 if __name__ == "__main__":

@@ -50,6 +50,33 @@ _NONNEG = (">= 0", lambda a: a >= 0)
 _AT_LEAST_1 = (">= 1", lambda a: a >= 1)
 _FRACTION = ("in (0, 1]", lambda a: (a > 0) & (a <= 1))
 
+
+def _within(lo: float, hi: float, what: str):
+    """A plausibility rule: values in [lo, hi], beyond which no laboratory measures ``what``.
+
+    Values far outside every CRDS experiment are a unit or export error, not data: they are
+    refused by path before any analysis (issue 20: T = 1e-300 K or dt_s = 1e300 s validated).
+    """
+    return (f"in [{lo:g}, {hi:g}] ({what})", lambda a: (a >= lo) & (a <= hi))
+
+
+# positive first (its message says so), then plausible
+_TEMPERATURE = [_POSITIVE, _within(1.0, 5000.0, "K, a gas sample")]
+_PRESSURE = [_POSITIVE, _within(1e-6, 1e8, "Pa")]
+_MASS = [_POSITIVE, _within(1.0, 1000.0, "u, a molecule's mass")]
+_OPTICAL = [_POSITIVE, _within(1e11, 1e16, "Hz, far infrared to ultraviolet")]
+_SAMPLING = [_POSITIVE, _within(1e-12, 1e-2, "s, a digitiser's sample interval")]
+_VOLTS = [_POSITIVE, _within(1e-15, 1e3, "V")]
+_SHIFT_U = [_POSITIVE, _within(1e-6, 1e12, "Hz")]
+
+
+def _rules(rule) -> list:
+    """A rule (text, test) or a list of them, checked in order."""
+    if rule is None:
+        return []
+    return [rule] if isinstance(rule[0], str) else list(rule)
+
+
 _ROOT_ITEMS = ("sample", "cavity", "configs", "truth")
 _ROOT_ATTRS = ("format", "format_version", "description")
 _SAMPLE_ATTRS = (
@@ -245,9 +272,10 @@ class _Reader:
             number = int(number)
         else:
             number = float(number)
-        if rule is not None and not rule[1](number):
-            self.error(path, f"must be {rule[0]}, found {number!r}")
-            return None
+        for text, ok in _rules(rule):
+            if not ok(number):
+                self.error(path, f"must be {text}, found {number!r}")
+                return None
         return number
 
     # -- datasets
@@ -330,13 +358,13 @@ class _Reader:
             values = raw.astype(np.int64)
         else:
             values = raw.astype(np.float64)
-        if rule is not None:
-            bad = ~rule[1](values)
+        for text, ok in _rules(rule):
+            bad = ~ok(values)
             if np.any(bad):
                 first = int(np.argmax(np.reshape(bad, -1)))
                 self.error(
                     path,
-                    f"must be {rule[0]}: {int(np.sum(bad))} of {values.size} value(s) are not, "
+                    f"must be {text}: {int(np.sum(bad))} of {values.size} value(s) are not, "
                     f"first at index {_index(first, values.shape)}: "
                     f"{_num(values.reshape(-1)[first])}",
                 )
@@ -388,13 +416,13 @@ def _read_sample(f, r: _Reader) -> Sample | None:
     v = dict(
         molecule=r.attr(g, p, "molecule", "str"),
         line=r.attr(g, p, "line", "str"),
-        nu0_hz=r.attr(g, p, "nu0_hz", "float", rule=_POSITIVE),
-        pressure_pa=r.attr(g, p, "pressure_pa", "float", rule=_POSITIVE),
+        nu0_hz=r.attr(g, p, "nu0_hz", "float", rule=_OPTICAL),
+        pressure_pa=r.attr(g, p, "pressure_pa", "float", rule=_PRESSURE),
         pressure_u_pa=r.attr(g, p, "pressure_u_pa", "float", rule=_NONNEG),
-        temperature_k=r.attr(g, p, "temperature_k", "float", rule=_POSITIVE),
+        temperature_k=r.attr(g, p, "temperature_k", "float", rule=_TEMPERATURE),
         temperature_u_k=r.attr(g, p, "temperature_u_k", "float", rule=_NONNEG),
         mole_fraction=r.attr(g, p, "mole_fraction", "float", required=False, rule=_FRACTION),
-        mass_u=r.attr(g, p, "mass_u", "float", required=False, rule=_POSITIVE),
+        mass_u=r.attr(g, p, "mass_u", "float", required=False, rule=_MASS),
     )
     r.extras(g, p, (), _SAMPLE_ATTRS)
     if len(r.errors) > n0:
@@ -470,10 +498,10 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     r.extras(g, p, _RD_ITEMS, ("dt_s", "t0_s"))
     signal = r.array(g, p, "signal_v", ndims=(2,))
     nu = r.array(g, p, "nu_hz", rule=_POSITIVE, precise=True)
-    dt = r.attr(g, p, "dt_s", "float", rule=_POSITIVE)
+    dt = r.attr(g, p, "dt_s", "float", rule=_SAMPLING)
     t0 = r.attr(g, p, "t0_s", "float")
     n_avg = r.array(g, p, "n_avg", required=False, rule=_AT_LEAST_1, integer=True)
-    noise = r.array(g, p, "noise_v", ndims=(1, 2), required=False, rule=_POSITIVE)
+    noise = r.array(g, p, "noise_v", ndims=(1, 2), required=False, rule=_VOLTS)
     if signal is None:  # its own error says why; nothing to check lengths against
         return None
     m, k = signal.shape
@@ -557,7 +585,7 @@ def _read_cmds(parent, cp: str, r: _Reader) -> CmdsData | None:
     r.extras(g, p, _CMDS_ITEMS)
     nu = r.array(g, p, "nu_hz", rule=_POSITIVE, precise=True)
     shift = r.array(g, p, "shift_hz")
-    shift_u = r.array(g, p, "shift_u_hz", rule=_POSITIVE)
+    shift_u = r.array(g, p, "shift_u_hz", rule=_SHIFT_U)
     width = r.array(g, p, "width_hz", required=False, rule=_POSITIVE)
     width_u = r.array(g, p, "width_u_hz", required=False, rule=_POSITIVE)  # a weight, like shift_u
     n = None if nu is None else nu.shape[0]
@@ -647,7 +675,13 @@ def load_bundle(path) -> Bundle:
     return bundle
 
 
-def _read_truth(g: h5py.Group, where: str, file: str) -> dict:
+def _read_truth(g: h5py.Group, where: str, file: str, ancestors: tuple = ()) -> dict:
+    # a group hard-linked into its own subtree would recurse for ever: refused by path
+    if any(g.id == a for a in ancestors):
+        raise BundleError(
+            file, [Violation(where, "is a hard link back to a group above it (a cycle)")]
+        )
+    ancestors = (*ancestors, g.id)
     out: dict[str, Any] = {}
     for key in g.attrs:
         refused = _refused_dtype(g.attrs.get_id(key).dtype)
@@ -665,7 +699,7 @@ def _read_truth(g: h5py.Group, where: str, file: str) -> dict:
         here = _join(where, key)
         obj = g.get(key)
         if isinstance(obj, h5py.Group):
-            out[key] = _read_truth(obj, here, file)
+            out[key] = _read_truth(obj, here, file, ancestors)
         elif isinstance(obj, h5py.Dataset):
             if h5py.check_string_dtype(obj.dtype) is not None:
                 value = np.asarray(obj.asstr()[()])

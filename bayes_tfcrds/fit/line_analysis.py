@@ -69,8 +69,8 @@ def check_overlap(config):
 def check_t_cuts(config, t_cuts_s):
     """Refuse truncation times outside the ring-down record before any work is done.
 
-    t_cut is in s from laser extinction; a fit needs t_cut >= 0 and some samples after it (8, as
-    ringdown.fit_transients).
+    t_cut is in s from laser extinction; a fit needs t_cut >= 0, no earlier than the record's first
+    sample, and some samples after it (8, as ringdown.fit_transients).
     """
     t = config.ringdowns.time_s
     last, dt = float(t[-1]), float(t[1] - t[0]) if t.size > 1 else 0.0
@@ -78,6 +78,13 @@ def check_t_cuts(config, t_cuts_s):
         if not np.isfinite(tc) or tc < 0:
             raise LineFitError(
                 f"t_cut = {tc:g} s: t_cut is counted from laser extinction and must be >= 0 s"
+            )
+        if tc < float(t[0]) - dt:
+            # every t_cut before the first sample fits the same samples: identical rows that
+            # look like a t_cut study
+            raise LineFitError(
+                f"t_cut = {tc:g} s is before the first sample of /configs/{config.name}/ringdowns "
+                f"(t0_s = {float(t[0]):g} s): choose t_cut >= t0_s"
             )
         if tc >= last - 8 * dt:
             raise LineFitError(

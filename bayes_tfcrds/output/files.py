@@ -1,15 +1,18 @@
 """Atomic file writes: the one way the toolkit puts a file in place.
 
 A result file is either the old one or the complete new one, never half-written: the content
-goes to a unique hidden temporary name in the target's directory (``.NAME.<hex>.tmp``), is
+goes to a unique hidden temporary name in the target's directory (``.NAME.<pid>-<hex>.tmp``), is
 flushed to disk (fsync), and is moved over the target with ``os.replace`` (atomic on POSIX).
 On any failure the temporary file is removed and the target is untouched.
 """
 
 from __future__ import annotations
 
+import glob
 import os
+import re
 import secrets
+import stat
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -19,16 +22,83 @@ TEMP_GLOB = ".*.tmp*"
 
 
 def temporary_name(path: Path, suffix: str = "") -> Path:
-    """A unique hidden name beside ``path``.
+    """A unique hidden name beside ``path``: ``.NAME.<pid>-<hex>.tmp<suffix>``.
 
-    ``suffix`` keeps a file type (``.png``) for writers that choose their format from the name.
+    ``suffix`` keeps a file type (``.png``) for writers that choose their format from the name;
+    the process id lets a later run tell a killed writer's leftover from a live one's file.
     """
-    return path.with_name(f".{path.name}.{secrets.token_hex(6)}.tmp{suffix}")
+    return path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(6)}.tmp{suffix}")
+
+
+_TEMP_RE = re.compile(r"\.(?P<name>.+)\.(?P<pid>\d+)-[0-9a-f]{12}\.tmp.*")
+
+
+def clean_stale_temporaries(target: Path) -> list:
+    """Remove temporaries of ``target`` left by writers that were killed; returns their paths.
+
+    Only names this module makes are touched, and only when the process that made them is no
+    longer running (a SIGKILL during a 50 MB save would otherwise leave the file forever).
+    """
+    removed = []
+    for tmp in target.parent.glob(f".{glob.escape(target.name)}.*.tmp*"):
+        m = _TEMP_RE.fullmatch(tmp.name)
+        if m is None or m["name"] != target.name or _alive(int(m["pid"])):
+            continue
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True  # someone else's process (or not a pid we can ask about): leave it
+    return True
 
 
 def _fsync(path: Path) -> None:
     with open(path, "rb+") as fh:
         os.fsync(fh.fileno())
+
+
+class OutputPathError(ValueError):
+    """An output path the toolkit will not write: not a regular file, or a link."""
+
+
+def check_replaceable(target: Path) -> None:
+    """Refuse to put a file where something other than a regular file (or nothing) is.
+
+    The rule: results replace regular files only. A symbolic link is not followed (the result
+    would land outside the folder the user named) nor replaced (the link would be lost); FIFOs,
+    sockets and device nodes (``-o /dev/null`` as root) are never replaced; a directory needs a
+    file name inside it. Missing folders on the way are fine (the writer creates them).
+    """
+    try:
+        st = os.lstat(target)
+    except (FileNotFoundError, NotADirectoryError):
+        # missing folders are created by the writer; the nearest existing one must be a folder
+        for parent in target.parents:
+            if os.path.lexists(parent):
+                if not parent.is_dir():
+                    raise OutputPathError(
+                        f"{target}: {parent} is not a folder, so nothing can be written under it"
+                    ) from None
+                break
+        return
+    if stat.S_ISLNK(st.st_mode):
+        raise OutputPathError(f"{target} is a symbolic link; give the path of a regular file")
+    if stat.S_ISDIR(st.st_mode):
+        raise OutputPathError(f"{target} is a directory; give a file name inside it")
+    if not stat.S_ISREG(st.st_mode):
+        raise OutputPathError(
+            f"{target} is not a regular file (a FIFO, socket or device); results are not "
+            "written over it"
+        )
 
 
 @contextmanager
@@ -37,10 +107,13 @@ def atomic_path(path, suffix: str = "") -> Iterator[Path]:
 
     On a clean exit it is synced and moved into place, on an exception it is removed.
 
-    The directory must exist. ``suffix`` is appended to the temporary name (see
+    Missing folders are created. ``suffix`` is appended to the temporary name (see
     :func:`temporary_name`).
     """
     target = Path(os.path.abspath(os.fspath(path)))
+    check_replaceable(target)
+    target.parent.mkdir(parents=True, exist_ok=True)
+    clean_stale_temporaries(target)
     tmp = temporary_name(target, suffix)
     try:
         yield tmp

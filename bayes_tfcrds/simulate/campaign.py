@@ -82,6 +82,28 @@ EFFECT_DEFAULTS = {
 }
 
 
+# the physical domain of each effect parameter: a fraction or ratio of a signal is not negative,
+# a time or frequency is positive; values outside are refused (0 s or nan would divide by zero)
+EFFECT_DOMAINS = {
+    "beta": (-0.5, 0.5),
+    "gamma": (-0.5, 0.5),
+    "v_ref": (1e-6, 1e3),
+    "fraction": (0.0, 0.99),
+    "tau_s": (1e-9, 1.0),
+    "tau_ratio": (1e-3, 1e3),
+    "slope_v_per_s": (-1e6, 1e6),
+    "freq_hz": (1.0, 1e10),
+    "phase_rad": (-1e3, 1e3),
+    "gamma2_ratio": (0.0, 0.99),
+    "delta2_ratio": (-1.0, 1.0),
+    "nu_vc_ratio": (0.0, 1e3),
+    "amplitude_per_m": (-1e-2, 1e-2),
+    "period_hz": (1e6, 1e13),
+    "offset_hz": (-1e11, 1e11),
+    "intensity_ratio": (0.0, 10.0),
+}
+
+
 def parse_effect(text: str):
     """``NAME[:key=value,...]`` -> (name, dict) with values as float (or str for ``kind``)."""
     name, _, rest = text.partition(":")
@@ -98,7 +120,17 @@ def parse_effect(text: str):
             raise ValueError(
                 f"effect {name} has no parameter {key!r}; it has {sorted(EFFECT_DEFAULTS[name])}"
             )
-        params[key] = value.strip() if key == "kind" else float(value)
+        if key == "kind":
+            params[key] = value.strip()
+            continue
+        try:
+            v = float(value)
+        except ValueError:
+            raise ValueError(f"effect {name}: {key} = {value.strip()!r} is not a number") from None
+        lo, hi = EFFECT_DOMAINS[key]
+        if not (np.isfinite(v) and lo <= v <= hi):
+            raise ValueError(f"effect {name}: {key} = {v!r} is outside its domain [{lo:g}, {hi:g}]")
+        params[key] = v
     return name, params
 
 
@@ -149,6 +181,9 @@ PRESETS = {
 # --------------------------------------------------------------------------- campaign settings
 
 
+MIN_POINTS = 8  # a line fit has up to 7 parameters
+
+
 @dataclass(frozen=True)
 class Campaign:
     """Settings of one simulated measurement (all SI)."""
@@ -176,6 +211,30 @@ class Campaign:
     cmds_area_rel_u: float = 6e-4  # the letter's 0.06 % spread of A_ref
     cmds_width_u_hz: float = 50.0
     profile: str = "qsdhcp"
+
+    def __post_init__(self):
+        # sizes a line fit and a ring-down fit can use and memory can hold (the study files'
+        # bounds), and sample conditions inside what the bundle reader accepts
+        for name, lo, hi in (
+            ("n_points", MIN_POINTS, 2000),
+            ("n_samples", 256, 1 << 20),
+            ("n_avg", 1, 100000),
+            ("beat_points", 8, 100000),
+        ):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and lo <= v <= hi):
+                raise ValueError(f"{name} = {v!r} must be an integer in [{lo}, {hi}]")
+        for name, lo, hi in (
+            ("pressure_pa", 1e-6, 1e8),
+            ("temperature_k", 1.0, 5000.0),
+            ("dt_s", 1e-12, 1e-2),
+            ("fsr_hz", 1e3, 1e12),
+            ("finesse", 1.0, 1e9),
+            ("span_hz", 1.0, 1e13),
+        ):
+            v = getattr(self, name)
+            if not (np.isfinite(v) and lo <= v <= hi):
+                raise ValueError(f"{name} = {v!r} must be in [{lo:g}, {hi:g}]")
 
 
 def spectral_points(c: Campaign) -> np.ndarray:

@@ -37,6 +37,8 @@ An invalid file is refused with the offending key named.
 from __future__ import annotations
 
 import difflib
+import math
+import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -123,6 +125,10 @@ def _read(path: Path) -> tuple[str, dict]:
         raw = tomllib.loads(text)
     except FileNotFoundError:
         raise StudyError(f"{path}: no such study file") from None
+    except IsADirectoryError:
+        raise StudyError(f"{path}: is a folder, not a study file") from None
+    except UnicodeDecodeError as exc:
+        raise StudyError(f"{path}: not UTF-8 text ({exc.reason} at byte {exc.start})") from None
     except tomllib.TOMLDecodeError as exc:
         raise StudyError(f"{path}: not valid TOML ({exc})") from None
     return text, raw
@@ -149,6 +155,9 @@ def _check_schema(path: Path, raw: dict) -> None:
             _check_type(f"{path}: {section}.{key}", value, SCHEMA[section][key])
 
 
+NAME_PATTERN = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
+
+
 def _check_study_and_campaign(path: Path, st: dict, cp: dict) -> None:
     """Required keys, the study kind, presets, effects and the campaign's sizes."""
     for key in ("name", "kind"):
@@ -156,6 +165,15 @@ def _check_study_and_campaign(path: Path, st: dict, cp: dict) -> None:
             raise StudyError(f"{path}: missing required key study.{key}")
     if st["kind"] not in KINDS:
         raise StudyError(f"{path}: study.kind must be one of {KINDS}, got {st['kind']!r}")
+    if not NAME_PATTERN.fullmatch(st["name"]):
+        # the name is the report's file stem: no path separators, no '..', nothing a shell or
+        # a file system could read as something else
+        raise StudyError(
+            f"{path}: study.name = {st['name']!r} must be 1-64 letters, digits, '.', '_' or '-', "
+            "starting with a letter or digit (it names the report files)"
+        )
+    if "seed" in st and not 0 <= st["seed"] < 2**63:
+        raise StudyError(f"{path}: study.seed must be an integer >= 0, got {st['seed']!r}")
     from bayes_tfcrds.simulate.campaign import PRESETS, parse_effect
 
     for i, p in enumerate(cp.get("presets", [])):
@@ -209,8 +227,20 @@ def _check_analysis(path: Path, st: dict, cp: dict, an: dict) -> tuple:
     if an.get("profile", "qsdhcp") not in PROFILES:
         raise StudyError(f"{path}: analysis.profile must be one of {sorted(PROFILES)}")
     t_cuts = tuple(float(v) * 1e-6 for v in an.get("t_cuts_us", [2, 3, 4, 5, 6, 8]))
-    if any(t <= 0 for t in t_cuts):
-        raise StudyError(f"{path}: analysis.t_cuts_us must be positive")
+    # a ring-down record lasts microseconds to milliseconds: t_cut beyond 1 ms is a unit error
+    for key, values in (("t_cuts_us", t_cuts), ("t_cut_us", (an.get("t_cut_us", 4) * 1e-6,))):
+        if not values or not all(math.isfinite(t) and 0 < t <= 1e-3 for t in values):
+            raise StudyError(
+                f"{path}: analysis.{key} must be one or more numbers in (0, 1000] us, got "
+                f"{an.get(key)!r}"
+            )
+    for key in ("methods", "windows"):
+        if key in an and not an[key]:
+            raise StudyError(f"{path}: analysis.{key} is empty; leave it out for the default")
+    if "presets" in cp and not cp["presets"]:
+        raise StudyError(f"{path}: campaign.presets is empty; leave it out for the default")
+    if "mcmc_steps" in an and not 1 <= an["mcmc_steps"] <= 10**7:
+        raise StudyError(f"{path}: analysis.mcmc_steps must be in [1, 1e7], got {an['mcmc_steps']}")
     if "bundle" in cp and ("presets" in cp or "effects" in cp):
         raise StudyError(f"{path}: campaign.bundle excludes campaign.presets and campaign.effects")
     return t_cuts

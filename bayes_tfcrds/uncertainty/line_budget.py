@@ -24,22 +24,26 @@ failed, and its numbers are never given as a result.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+import json
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
+from bayes_tfcrds._version import __version__
 from bayes_tfcrds.core.constants import (
     C,
     intensity_to_cm_per_molecule,
     line_area_to_cm2,
     number_density,
 )
+from bayes_tfcrds.core.fingerprint import content_hash
 from bayes_tfcrds.core.gum import Budget, Component, normalized_error
 from bayes_tfcrds.core.quantity import Quantity
 from bayes_tfcrds.fit.h_calibration import (
     BEAT_FREE,
     DEFAULT_T_CUTS,
+    AnalysisError,
     h_model_forms,
     refine_on_records,
 )
@@ -48,6 +52,7 @@ from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_
 from bayes_tfcrds.fit.refine import HPrior
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
+from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.uncertainty.posterior_steps import (
     IS_ESS_MIN,
@@ -227,6 +232,64 @@ class _HSplit:
     centre: np.ndarray
 
 
+CHAINS_MANIFEST = "chains.json"
+# sampler lengths only extend a chain (it is a deterministic function of the seed), so a rerun
+# with more steps may resume; every other option defines the posterior
+_EXTENDS_ONLY = ("n_steps", "max_steps")
+
+
+def run_fingerprint(bundle, config, options) -> dict:
+    """What the chains of one budget depend on: code version, data and every defining option.
+
+    The seed is checked by the chain stores themselves (each ensemble's seed is in its file).
+    """
+    opts = {k: v for k, v in asdict(options).items() if k not in _EXTENDS_ONLY}
+    return {
+        "code_version": __version__,
+        "configuration": config.name,
+        "data_sha256": content_hash([bundle.sample, config]),
+        "options_sha256": content_hash(opts),
+        "options": json.loads(json.dumps(opts, default=str)),
+    }
+
+
+def claim_chains(outdir, fingerprint: dict) -> None:
+    """Refuse to resume chains in ``outdir`` written for another posterior; record this one's.
+
+    Chains are matched by seed and shape in their files; this adds the data, the options and the
+    code version (``chains.json`` beside them). A folder with chains but no record, or a record
+    that differs, is refused with the differences named: the chains are never reused silently and
+    never deleted here.
+    """
+    out = Path(outdir)
+    manifest = out / CHAINS_MANIFEST
+    chains = sorted(p.name for p in out.glob("chains*.h5"))
+    old = None
+    if manifest.exists():
+        try:
+            old = json.loads(manifest.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            old = {}
+    if chains and old != fingerprint:
+        if old is None:
+            why = f"no {CHAINS_MANIFEST} records what they were sampled for"
+        else:
+            keys = [k for k in fingerprint if k != "options" and old.get(k) != fingerprint[k]]
+            opts = [
+                k
+                for k in fingerprint["options"]
+                if (old.get("options") or {}).get(k) != fingerprint["options"][k]
+            ]
+            why = "they differ in " + ", ".join(
+                [k for k in keys if k != "options_sha256"] + [f"option {k}" for k in opts]
+            )
+        raise AnalysisError(
+            f"{out} holds MCMC chains ({', '.join(chains)}) of another budget: {why}. "
+            "Give another output folder, or delete those files to sample afresh"
+        )
+    atomic_write_text(manifest, json.dumps(fingerprint, indent=1))
+
+
 def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     """Check the inputs, spawn the four random streams, place the chain files.
 
@@ -239,6 +302,7 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     backend = None
     if outdir is not None:
         Path(outdir).mkdir(parents=True, exist_ok=True)
+        claim_chains(outdir, run_fingerprint(bundle, config, options))
         backend = str(Path(outdir) / "chains.h5")
     return _Inputs(
         config,
@@ -773,11 +837,14 @@ def _refinement_summary(refined) -> dict:
     }
 
 
-def _apply_gates(summary: dict, options: BudgetOptions, runs: dict, h_weights=None) -> None:
+def _apply_gates(
+    summary: dict, options: BudgetOptions, runs: dict, h_weights=None, refined=None
+) -> None:
     """Step 10.
 
     The samplers' diagnostics into the summary; a failed run is never shown as a result (its numbers
-    move out of the result keys into ``unconverged_estimates``).
+    move out of the result keys into ``unconverged_estimates``). A ring-down refinement of H that
+    did not converge fails the budget too, whatever the samplers say.
     """
     if options.posterior == "laplace":
         # no sampler ran: nothing to diagnose, and the summary says which posterior was used
@@ -820,6 +887,11 @@ def _apply_gates(summary: dict, options: BudgetOptions, runs: dict, h_weights=No
         }
         passed = passed and weights.passed
         summary["diagnostics"]["passed"] = bool(passed)
+    refinement_failed = refined is not None and not refined.converged
+    if refinement_failed:
+        summary["diagnostics"]["refinement_converged"] = False
+        passed = False
+        summary["diagnostics"]["passed"] = False
     if not passed:
         failed = {
             k: summary.pop(k) for k in ("line_area", "reference_area", "ratio", "en", "intensity")
@@ -827,7 +899,10 @@ def _apply_gates(summary: dict, options: BudgetOptions, runs: dict, h_weights=No
         summary.update({k: None for k in failed})
         summary["unconverged_estimates"] = failed
         summary["status"] = (
-            "failed: convergence gates not met"
+            "failed: the ring-down refinement of H did not converge (try --refine with fewer "
+            "parameters, or check the ring-downs with bayes-tfcrds fit)"
+            if refinement_failed
+            else "failed: convergence gates not met"
             if weights is None or weights.passed
             else f"failed: the ring-downs overrule the beat note (importance ESS {weights.ess:.0f} "
             f"< {IS_ESS_MIN}); refine more H parameters (--refine)"
@@ -937,7 +1012,7 @@ def run_budget(
         # the ring-downs may have asked for more parameters than the options named
         summary["transfer_function"]["refined"] = list(refined.free)
         summary["transfer_function"]["refined_asked"] = list(options.refine_free)
-    _apply_gates(summary, options, runs, (h_parts or {}).get("weights"))  # 10. gates
+    _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
     samples = {
         "a_total": a_total,
         "a_noise": a_noise,

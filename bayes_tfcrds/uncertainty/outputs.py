@@ -34,15 +34,23 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         [result.budget_ratio] if result.budget_ratio is not None else []
     )
     md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
+    banner = failed_banner(result)
+    if banner:
+        md = f"# {banner}\n\n{md}"
     refinement = (result.summary.get("transfer_function") or {}).get("refinement")
     if refinement:
         md += "\n\n" + refinement_markdown(refinement)
     atomic_write_text(out / "budget.md", md + "\n")
-    atomic_write_text(out / "budget.csv", result.budget_a.to_csv())
-    lines = ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"] + [
-        f"{nu:.9f},{tc:.6e},{tau:.10e},{un:.4e},{uh:.4e},{u:.4e}"
-        for nu, tc, tau, un, uh, u in result.tau_table
-    ]
+    mark = f"# {banner}\n" if banner else ""
+    atomic_write_text(out / "budget.csv", mark + result.budget_a.to_csv())
+    lines = (
+        ([mark.rstrip()] if mark else [])
+        + ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"]
+        + [
+            f"{nu:.9f},{tc:.6e},{tau:.10e},{un:.4e},{uh:.4e},{u:.4e}"
+            for nu, tc, tau, un, uh, u in result.tau_table
+        ]
+    )
     atomic_write_text(out / "tau_posterior.csv", "\n".join(lines) + "\n")
     written += [out / "budget.md", out / "budget.csv", out / "tau_posterior.csv"]
     for key, run in result.runs.items():
@@ -55,6 +63,16 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         plt.close(fig)
         written.append(out / f"corner_{key}.png")
     return written
+
+
+def failed_banner(result: BudgetResult) -> str:
+    """The line every output of a budget that failed its gates starts with ('' when it passed)."""
+    if result.passed:
+        return ""
+    return (
+        f"FAILED: {result.status}. These numbers did not pass the convergence gates and must not "
+        "be used; rerun with more steps (--steps, --max-steps) to resume the chains"
+    )
 
 
 def refinement_markdown(refinement: dict) -> str:

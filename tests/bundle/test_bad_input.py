@@ -14,6 +14,7 @@ import html
 import json
 import pickle
 import re
+import shutil
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -199,6 +200,43 @@ BROKEN = [
         lambda f: f["sample"].attrs.__setitem__("temperature_k", -296.0),
         "/sample@temperature_k",
         "must be > 0",
+    ),
+    # positive but beyond any laboratory (issue 20 item 5: these validated and were analysed)
+    (
+        "temperature 1e-300 K",
+        lambda f: f["sample"].attrs.__setitem__("temperature_k", 1e-300),
+        "/sample@temperature_k",
+        "must be in [1, 5000] (K, a gas sample), found 1e-300",
+    ),
+    (
+        "mass 1e-30 u",
+        lambda f: f["sample"].attrs.__setitem__("mass_u", 1e-30),
+        "/sample@mass_u",
+        "must be in [1, 1000]",
+    ),
+    (
+        "dt_s 1e300 s",
+        lambda f: f[RD].attrs.__setitem__("dt_s", 1e300),
+        RD + "@dt_s",
+        "must be in [1e-12, 0.01] (s, a digitiser's sample interval)",
+    ),
+    (
+        "dt_s 20 s",
+        lambda f: f[RD].attrs.__setitem__("dt_s", 20.0),
+        RD + "@dt_s",
+        "must be in [1e-12, 0.01]",
+    ),
+    (
+        "noise_v 1e300 V",
+        lambda f: _scale_row(f, RD + "/noise_v", 1e300),
+        RD + "/noise_v",
+        "must be in [1e-15, 1000] (V)",
+    ),
+    (
+        "shift_u_hz 1e-300 Hz",
+        lambda f: _scale_row(f, CM + "/shift_u_hz", 1e-300),
+        CM + "/shift_u_hz",
+        "must be in [1e-06, 1e+12] (Hz)",
     ),
 ]
 
@@ -633,3 +671,31 @@ def test_the_package_has_no_unpickling_or_eval():
         if pattern.search(line.split("#")[0])
     ]
     assert hits == [], hits
+
+
+def test_t_cut_before_the_first_sample_is_refused(campaign, tmp_path, capsys):
+    # issue 20 item 5: a record that starts after t_cut gave identical rows for every t_cut
+    late = tmp_path / "late.h5"
+    shutil.copy(campaign, late)
+    with h5py.File(late, "a") as f:
+        f["configs/D2/ringdowns"].attrs["t0_s"] = 10e-6
+    out = tmp_path / "x.csv"
+    assert (
+        main(["fit", str(late), "--config", "D2", "--tcut", "2e-6,4e-6,12e-6", "-o", str(out)]) == 1
+    )
+    assert "t_cut = 2e-06 s is before the first sample" in capsys.readouterr().err
+    assert not out.exists()
+
+
+def test_truth_with_a_hard_link_cycle_is_refused_by_path(tmp_path):
+    # issue 20: load_truth recursed for ever (RecursionError) on /truth/a/loop -> /truth/a
+    path = tmp_path / "cycle.h5"
+    with h5py.File(path, "w") as f:
+        a = f.create_group("truth/a")
+        a.attrs["x"] = 1.0
+        a["loop"] = a  # a hard link to its own parent
+    with pytest.raises(BundleError) as info:
+        load_truth(path)
+    assert any(v.path == "/truth/a/loop" and "cycle" in v.message for v in info.value.violations), (
+        info.value
+    )

@@ -284,3 +284,50 @@ def test_records_too_short_for_the_decay_are_flagged(tmp_path):
     assert "record-short" in status  # the baseline decays
     long_tau = max(rows, key=lambda r: float(r["tau_s"]))
     assert long_tau["status"] == "record-short"
+
+
+@pytest.mark.parametrize(
+    "name", ["../../../x", "a/b", "", ".hidden", "$\\frac{1}$", "x" * 65, "new\nline"]
+)
+def test_study_name_is_a_file_stem_never_a_path(tmp_path, name):
+    # issue 20 item 6: the name becomes the report's file name inside -o
+    bad = tmp_path / "bad.toml"
+    bad.write_text(f'[study]\nname = {name!r}\nkind = "tcut"\n'.replace("'", '"'))
+    with pytest.raises(StudyError, match=r"study\.name"):
+        load_study(bad)
+
+
+def test_study_seed_must_be_non_negative(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[study]\nname = "ok_name-1.2"\nkind = "tcut"\nseed = -1\n')
+    with pytest.raises(StudyError, match=r"study\.seed"):
+        load_study(bad)
+
+
+@pytest.mark.parametrize(
+    "body, phrase",
+    [
+        ("[analysis]\nt_cuts_us = [4000]\n", r"analysis\.t_cuts_us must be"),
+        ("[analysis]\nt_cuts_us = [nan]\n", r"analysis\.t_cuts_us must be"),
+        ("[analysis]\nt_cuts_us = [inf]\n", r"analysis\.t_cuts_us must be"),
+        ("[analysis]\nt_cuts_us = []\n", r"analysis\.t_cuts_us must be"),
+        ("[analysis]\nmethods = []\n", r"analysis\.methods is empty"),
+        ("[campaign]\npresets = []\n", r"campaign\.presets is empty"),
+        ("[analysis]\nmcmc_steps = -5\n", r"analysis\.mcmc_steps must be"),
+    ],
+)
+def test_study_values_that_cannot_run_are_refused(tmp_path, body, phrase):
+    # issue 20: each of these ran (or crashed) instead of being refused with the key named
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[study]\nname = "x"\nkind = "tcut"\n' + body)
+    with pytest.raises(StudyError, match=phrase):
+        load_study(bad)
+
+
+def test_study_file_that_is_not_text_or_is_a_folder_is_refused(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_bytes(b'[study]\nname = "\xff\xfe"\n')
+    with pytest.raises(StudyError, match="not UTF-8"):
+        load_study(bad)
+    with pytest.raises(StudyError, match="is a folder"):
+        load_study(tmp_path)

@@ -148,3 +148,43 @@ def test_negative_shape_estimates_are_reported_as_unphysical():
         assert np.all(np.diag(f.cov) > 0)
         seen |= bool(neg)
     assert seen
+
+
+def test_a_repeated_mode_counts_as_one_point_with_the_combined_uncertainty():
+    # two agreeing measurements of one mode carry the information of one with u / sqrt(2): the
+    # line fit with the repeat equals the fit with that combined point (issue 20 item 2)
+    rng = np.random.default_rng(3)
+    alpha = AREA * _g().real + ALOSS
+    u = 2e-5 * alpha
+    y = alpha + u * rng.standard_normal(NU.size)
+    k = 49  # the line centre
+    rep = y[k] + 0.3 * u[k]  # a repeat that agrees (0.3 sd)
+    combined = y.copy()
+    combined[k] = 0.5 * (y[k] + rep)
+    u_comb = u.copy()
+    u_comb[k] = u[k] / np.sqrt(2)
+    f_rep = fit_line(
+        [SpectrumData("absorption", np.append(NU, NU[k]), np.append(y, rep), np.append(u, u[k]))],
+        "qsdhcp",
+        GD,
+        NU0,
+    )
+    f_one = fit_line([SpectrumData("absorption", NU, combined, u_comb)], "qsdhcp", GD, NU0)
+    assert f_rep.line_area == pytest.approx(f_one.line_area, rel=1e-7)
+    assert f_rep.line_area_u == pytest.approx(f_one.line_area_u, rel=1e-6)
+
+
+def test_repeats_that_disagree_are_refused_with_their_indices():
+    alpha = AREA * _g().real + ALOSS
+    u = 2e-5 * alpha
+    nu = NU.copy()
+    nu[48] = nu[49]  # a mislabelled record: the next mode's loss at the line centre's frequency
+    tau = 1.0 / (C * alpha)
+    with pytest.raises(ValueError, match=r"indices 48, 49\) disagree"):
+        crds_spectrum(nu, tau, tau * 2e-5)
+    with pytest.raises(ValueError, match="disagree"):
+        SpectrumData("absorption", nu, alpha, u)
+    # the same repeat with agreeing values is accepted
+    alpha2 = alpha.copy()
+    alpha2[48] = alpha2[49]
+    SpectrumData("absorption", nu, alpha2, u)
