@@ -65,7 +65,12 @@ def cmd_validate(args) -> int:
 
 
 def cmd_fit(args) -> int:
-    from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+    from bayes_tfcrds.fit.h_calibration import (
+        AnalysisError,
+        account_for_noise_colour,
+        calibrate,
+        fit_config,
+    )
     from bayes_tfcrds.fit.line_analysis import check_t_cuts
     from bayes_tfcrds.fit.refine import tension_lines
 
@@ -74,9 +79,15 @@ def cmd_fit(args) -> int:
     cal = None
     try:
         check_t_cuts(config, args.tcut)
+        config, noise, beat = account_for_noise_colour(config, args.window)
+        print(f"# {_printable(noise.summary_line())}", file=sys.stderr)
         if args.method == "tf-crds":
             cal = calibrate(
-                config, window=args.window, refine=args.h == "refined", free=args.refine
+                config,
+                window=args.window,
+                refine=args.h == "refined",
+                free=args.refine,
+                beat=beat,
             )
             p = cal.params
             print(
@@ -132,6 +143,7 @@ def cmd_fit(args) -> int:
 def cmd_simulate(args) -> int:
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.simulate.campaign import Campaign, parse_effect, simulate_campaign
+    from bayes_tfcrds.simulate.noise import parse_noise
 
     effects = {}
     try:
@@ -142,7 +154,9 @@ def cmd_simulate(args) -> int:
         repeated = sorted({p for p in presets if presets.count(p) > 1})
         if repeated:
             raise ValueError(f"--preset {', '.join(repeated)} given more than once")
-        campaign = Campaign(n_points=args.points, n_samples=args.samples)
+        campaign = Campaign(
+            n_points=args.points, n_samples=args.samples, noise=parse_noise(args.noise)
+        )
         rng = np.random.default_rng(args.seed)
         bundle, truth = simulate_campaign(presets, rng, campaign, effects)
     except ValueError as exc:
@@ -223,6 +237,8 @@ def _linefit_warnings(result, t_cut_s: float) -> list[str]:
         lines.append(
             f"note: {', '.join(result.shape_at_bound)} held at 0 by --shape-bounds physical"
         )
+    if result.noise is not None and not result.noise.white:
+        lines.append(f"warning: {result.noise.summary_line()}")
     return lines
 
 
@@ -287,6 +303,14 @@ def cmd_budget(args) -> int:
         return 130
     if not res.passed:
         print(failed_banner(res))
+    noise = res.summary.get("noise")
+    if noise and not noise["white"]:
+        print(
+            f"warning: the ring-down noise is coloured (kappa = {noise['kappa_median']:.3g}): "
+            "u(tau) and every ring-down likelihood use noise_v sqrt(kappa) (budget.md, "
+            "'Ring-down noise')",
+            file=sys.stderr,
+        )
     print(res.budget_a.to_markdown())
     if res.refined is not None:
         for line in tension_lines(res.refined):
@@ -503,6 +527,12 @@ def _add_simulate(sub) -> None:
         "default span of +/- 10 GHz holds 99)",
     )
     sp.add_argument("--samples", type=int, default=Campaign.n_samples, help="samples per transient")
+    sp.add_argument(
+        "--noise",
+        default="white",
+        help="PSD shape of the detector noise (same per-sample sd): white, chain (through the "
+        "detection chain), lowpass[:f_hz=5e6,order=2], pink[:f_knee_hz=1e5,alpha=1]",
+    )
     sp.add_argument("-o", "--output", required=True, help="bundle (HDF5) to write")
     sp.set_defaults(func=cmd_simulate)
 

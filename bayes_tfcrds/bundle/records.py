@@ -171,6 +171,12 @@ class RingdownData(_Record):
     every dt_s (s), the first sample at t0_s (s) from laser extinction; n_avg (m,)
     acquisitions averaged (optional); noise_v (m,) or (m, k) standard deviation of each
     averaged sample (V, optional).
+
+    ``noise_kappa`` (m,) is not part of the file: an analysis sets it
+    (:func:`bayes_tfcrds.fit.noise.with_noise_colour`) when the noise is coloured. It is the
+    factor by which correlated samples raise the variance of a slowly varying fitted quantity
+    (tau) over the independent-sample formula; every likelihood then weights the record with
+    ``fit_noise_v`` = noise_v sqrt(noise_kappa).
     """
 
     nu_hz: np.ndarray
@@ -179,6 +185,7 @@ class RingdownData(_Record):
     t0_s: float
     n_avg: np.ndarray | None = None
     noise_v: np.ndarray | None = None
+    noise_kappa: np.ndarray | None = None
 
     def __post_init__(self):
         if self.n_avg is not None and np.any(np.mod(self.n_avg, 1) != 0):
@@ -191,12 +198,21 @@ class RingdownData(_Record):
             t0_s=float(self.t0_s),
             n_avg=_frozen(self.n_avg, np.int64),
             noise_v=_frozen(self.noise_v),
+            noise_kappa=_frozen(self.noise_kappa),
         )
 
     @property
     def n_points(self) -> int:
         """Number of spectral points m (transients)."""
         return self.signal_v.shape[0]
+
+    @property
+    def fit_noise_v(self) -> np.ndarray | None:
+        """The noise (V) every likelihood weights with: noise_v, times sqrt(noise_kappa) if set."""
+        if self.noise_v is None or self.noise_kappa is None:
+            return self.noise_v
+        k = np.sqrt(self.noise_kappa)
+        return self.noise_v * (k if self.noise_v.ndim == 1 else k[:, None])
 
     @property
     def n_samples(self) -> int:

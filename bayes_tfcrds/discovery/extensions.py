@@ -239,11 +239,11 @@ def fit_transient_rows(
     t = ringdowns.time_s
     y = np.asarray(ringdowns.signal_v, float)[rows_of]
     sh = spec.shared
-    if ringdowns.noise_v is None or np.ndim(ringdowns.noise_v) != 1:
+    if ringdowns.fit_noise_v is None or np.ndim(ringdowns.fit_noise_v) != 1:
         raise ValueError(
             "discovery needs one noise level per transient (/ringdowns/noise_v of shape (m,))"
         )
-    noise_rows = np.asarray(ringdowns.noise_v, float)[rows_of]
+    noise_rows = np.asarray(ringdowns.fit_noise_v, float)[rows_of]
     noise2 = np.broadcast_to(noise_rows[:, None], y.shape)
     if "static_nonlinearity" in sh:
         beta = sh["static_nonlinearity"]["beta"]
@@ -327,7 +327,7 @@ def bin_ringdowns(rd, k: int):
         signal_v=sig,
         dt_s=rd.dt_s * k,
         t0_s=rd.t0_s + 0.5 * (k - 1) * rd.dt_s,
-        noise_v=np.asarray(rd.noise_v, float) / np.sqrt(k),
+        noise_v=np.asarray(rd.fit_noise_v, float) / np.sqrt(k),
     )
 
 

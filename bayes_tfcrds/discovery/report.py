@@ -149,6 +149,13 @@ def _diagnostics(rep, result) -> None:
         abs(ev.gaps["spectrum_chi2"]["z"]) < 3,
         f"z = {ev.gaps['spectrum_chi2']['z']:.2f}",
     )
+    if result.noise is not None:
+        rep.add_diagnostic(
+            "ring-down residuals white at the start (coloured noise, or transient structure no "
+            "candidate explains, makes slow effects' evidence about kappa times too large)",
+            result.noise.white,
+            result.noise.summary_line(),
+        )
     if "crds_cmds" in ev.gaps:
         rep.add_diagnostic(
             "A/A_ref consistent with 1 (k = 2)",

@@ -31,7 +31,7 @@ from bayes_tfcrds.discovery.extensions import (
     optimise_shared,
     shared_covariance,
 )
-from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate
+from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
 from bayes_tfcrds.fit.line_analysis import doppler_of
 from bayes_tfcrds.fit.spectrum import absorption_from_tau
 
@@ -665,6 +665,7 @@ class DiscoveryResult:
     candidates: list  # per round: list of Candidate
     threshold: float
     seconds: float
+    noise: object = None  # NoiseDiagnosis of the ring-downs at the start (fit.noise), or None
 
     def to_json(self) -> dict:
         def gaps(g):
@@ -706,6 +707,7 @@ class DiscoveryResult:
             "final_gaps": gaps(self.evaluations[-1].gaps),
             "candidates_per_round": rounds,
             "seconds": self.seconds,
+            "noise": None if self.noise is None else self.noise.to_dict(),
         }
 
 
@@ -792,6 +794,9 @@ def discover(
             f"no configuration {config_name!r} in the bundle (it has {list(bundle.configs)})"
         )
     config = bundle.configs[config_name]
+    noise = _noise_diagnosis(config)
+    if noise is not None:
+        say(noise.summary_line())
     state = _start_state(bundle, config, start, t_cuts)
     model = state.model
     ev = evaluate(bundle, config, state, t_cuts)
@@ -834,4 +839,19 @@ def discover(
         candidates=rounds,
         threshold=threshold,
         seconds=time.perf_counter() - t0,
+        noise=noise,
     )
+
+
+def _noise_diagnosis(config):
+    """Whiteness of the ring-down residuals (TF-CRDS at the beat-note H): a flag, never applied.
+
+    Coloured noise makes every slow effect's chi2 gain about kappa times too large; structure an
+    effect leaves in the transients looks the same to the test, so discovery reports it beside its
+    gaps and leaves the evidence as it is. None where the diagnosis cannot run.
+    """
+    try:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return account_for_noise_colour(config, confirm=False)[1]
+    except (AnalysisError, ValueError, RuntimeError, np.linalg.LinAlgError):
+        return None

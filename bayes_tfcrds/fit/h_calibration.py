@@ -12,6 +12,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note, same_mode
+from bayes_tfcrds.fit.noise import NoiseDiagnosis, account_for_noise
 from bayes_tfcrds.fit.refine import HPrior, RefinedTF, refine_transfer_function
 from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns, fit_transients
 from bayes_tfcrds.physics.transfer_function import TFParams
@@ -71,7 +72,7 @@ def beat_note_fit(
     rd = config.ringdowns
     idx = select_refinement_points(rd)
     t_cuts = np.asarray(DEFAULT_T_CUTS, float)
-    noise = None if rd.noise_v is None else np.asarray(rd.noise_v)[idx]
+    noise = None if rd.fit_noise_v is None else np.asarray(rd.fit_noise_v)[idx]
     rows = np.repeat(np.arange(idx.size), t_cuts.size)
 
     def ringdown_chi2(fit):
@@ -169,7 +170,7 @@ def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np
         ringdowns.signal_v[good],
         np.full(good.size, t_cut_s),
         "crds",
-        noise_v=None if ringdowns.noise_v is None else np.asarray(ringdowns.noise_v)[good],
+        noise_v=None if ringdowns.fit_noise_v is None else np.asarray(ringdowns.fit_noise_v)[good],
     )
     order = np.argsort(fits.tau_s)
     pick = order[
@@ -196,12 +197,43 @@ def refine_on_records(
         start,
         free=free,
         window=window,
-        noise_v=None if rd.noise_v is None else np.asarray(rd.noise_v)[idx],
+        noise_v=None if rd.fit_noise_v is None else np.asarray(rd.fit_noise_v)[idx],
         rows_of=np.repeat(np.arange(idx.size), t_cuts.size),
         prior=prior,
         sens_names=sens_names,
     )
     return refined, idx
+
+
+def account_for_noise_colour(
+    config, window: str = "extinction", beat: TFFit | None = None, confirm: bool = True
+) -> tuple[object, NoiseDiagnosis, TFFit | None]:
+    """(config whose ring-downs carry their noise colour, its NoiseDiagnosis, beat-note fit).
+
+    The detector's noise is judged through the best model of the transients: TF-CRDS at the
+    beat-note H (``beat``, fitted here when not given), or plain CRDS without a beat note. A
+    misfit of that H (its f_c is what the ring-down refinement fixes) leaves slow structure that
+    the tests would take for colour, so with ``confirm`` a colour found at the beat-note H is
+    judged again at the refined H (stated white noise; a uniform noise factor leaves the
+    refinement's estimate unchanged), and that verdict stands. White noise at the beat-note H
+    costs no refinement. See :mod:`bayes_tfcrds.fit.noise`.
+    """
+    if beat is None and config.transfer_function is not None:
+        beat = beat_note_fit(config, window=window)
+    try:
+        prepared, diagnosis = account_for_noise(
+            config, tf=None if beat is None else beat.params, window=window
+        )
+        if confirm and beat is not None and not diagnosis.white:
+            try:
+                refined = calibrate(config, window=window, beat=beat).params
+            except (ValueError, np.linalg.LinAlgError):  # AnalysisError: not converged
+                refined = None
+            if refined is not None:
+                prepared, diagnosis = account_for_noise(config, tf=refined, window=window)
+    except ValueError as exc:
+        raise AnalysisError(f"configuration {config.name!r}: {exc}") from exc
+    return prepared, diagnosis, beat
 
 
 def calibrate(
@@ -213,14 +245,16 @@ def calibrate(
     variant: str = "causal",
     n_points: int = 6,
     update: bool = True,
+    beat: TFFit | None = None,
 ) -> Calibration:
-    """Beat-note fit, then (with ``refine``) the multi-ring-down refinement of ``free``.
+    """Beat-note fit (unless ``beat`` is given), then (with ``refine``) the refinement of ``free``.
 
     With ``update`` (the default) the refinement updates the beat note (a parameter the ring-downs
     do not constrain stays where the beat note puts it); without, the ring-downs alone decide, as
     in the letter.
     """
-    beat = beat_note_fit(config, variant=variant, window=window)
+    if beat is None or beat.params.variant != variant:
+        beat = beat_note_fit(config, variant=variant, window=window)
     if not refine:
         return Calibration(beat=beat, refined=None)
     prior = HPrior.from_beat(beat) if update else None

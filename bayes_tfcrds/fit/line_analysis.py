@@ -17,7 +17,12 @@ from bayes_tfcrds.core.constants import (
 )
 from bayes_tfcrds.core.gum import ratio
 from bayes_tfcrds.core.quantity import Quantity
-from bayes_tfcrds.fit.h_calibration import AnalysisError, calibrate, fit_config
+from bayes_tfcrds.fit.h_calibration import (
+    AnalysisError,
+    account_for_noise_colour,
+    calibrate,
+    fit_config,
+)
 from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
 from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
@@ -124,6 +129,7 @@ class LineAnalysis:
     unconverged_points: int
     record_short_points: int
     calibration: object | None = None
+    noise: object | None = None  # the NoiseDiagnosis of the ring-downs (fit.noise)
 
     @property
     def line_area(self) -> Quantity:
@@ -214,6 +220,8 @@ class LineAnalysis:
                 "variant": p.variant,
                 "refined": self.calibration.refined is not None,
             }
+        if self.noise is not None:
+            out["noise"] = self.noise.to_dict()
         if ref is None:
             out["reference_area"] = None
             out["ratio"] = None
@@ -234,17 +242,24 @@ def analyse_line(
     profile_name: str = "qsdhcp",
     calibration=None,
     physical_bounds: bool = False,
+    noise=None,
 ) -> LineAnalysis:
     """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare.
 
     ``physical_bounds`` keeps Gamma2, nu_VC >= 0 in the CRDS line fit (see ``fit.line.fit_line``).
+    The ring-down noise's colour is diagnosed and accounted for first
+    (:func:`~bayes_tfcrds.fit.h_calibration.account_for_noise_colour`), unless ``noise`` gives
+    the NoiseDiagnosis of a ``config`` already returned by it (many analyses of one config).
     """
     gd = doppler_of(bundle.sample)
     check_t_cuts(config, [t_cut_s])
     check_overlap(config)
     try:
+        beat = None
+        if noise is None:
+            config, noise, beat = account_for_noise_colour(config, window)
         if method == "tf-crds" and calibration is None:
-            calibration = calibrate(config, window=window)
+            calibration = calibrate(config, window=window, beat=beat)
         fits = fit_config(config, [t_cut_s], method=method, window=window, calibration=calibration)
     except AnalysisError as exc:
         raise LineFitError(str(exc)) from exc
@@ -279,4 +294,5 @@ def analyse_line(
             sum(fits.status(i, 0) == "record-short" for i in range(fits.nu_hz.size))
         ),
         calibration=calibration,
+        noise=noise,
     )

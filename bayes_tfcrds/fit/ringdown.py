@@ -569,7 +569,7 @@ def fit_ringdowns(
     out = {k: np.full(shape, np.nan) for k in ("tau", "tau_u", "amp", "off", "chi2r")}
     conv = np.zeros(shape, bool)
     resid = None
-    est = ringdowns.noise_v is None
+    est = ringdowns.fit_noise_v is None
     if good.size:
         fits = fit_transients(
             ringdowns.time_s,
@@ -578,7 +578,7 @@ def fit_ringdowns(
             method=method,
             tf=tf,
             window=window,
-            noise_v=ringdowns.noise_v,
+            noise_v=ringdowns.fit_noise_v,
             rows_of=rows_of,
             keep_residuals=keep_residuals,
         )

@@ -38,6 +38,7 @@ from bayes_tfcrds.physics.detection_chain import IDEAL_CHAIN, RationalChain, cha
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz, profile
 from bayes_tfcrds.physics.transfer_function import TFParams
+from bayes_tfcrds.simulate.noise import NoiseColour, coloured_noise, shaping_filter
 
 # --------------------------------------------------------------------------- effects
 
@@ -211,6 +212,7 @@ class Campaign:
     cmds_area_rel_u: float = 6e-4  # the letter's 0.06 % spread of A_ref
     cmds_width_u_hz: float = 50.0
     profile: str = "qsdhcp"
+    noise: NoiseColour = NoiseColour()  # PSD shape of the detector noise (white by default)
 
     def __post_init__(self):
         # sizes a line fit and a ring-down fit can use and memory can hold (the study files'
@@ -404,8 +406,14 @@ def detected_transients(
     return amplitude_v * y
 
 
-def acquire(clean_v, c: Campaign, noise_v: float, effects: dict, t_s, rng: np.random.Generator):
-    """Average ``n_avg`` acquisitions: offset (+ drift), nonlinearity, noise, ADC quantisation."""
+def acquire(
+    clean_v, c: Campaign, noise_v: float, effects: dict, t_s, rng: np.random.Generator, chain=None
+):
+    """Average ``n_avg`` acquisitions: offset (+ drift), nonlinearity, noise, ADC quantisation.
+
+    The noise of each acquisition has the PSD shape ``c.noise`` (``chain`` for its ``chain``
+    kind) and the per-sample standard deviation ``noise_v`` (V).
+    """
     v = clean_v + c.offset_v
     if "baseline_drift" in effects:
         e = {**EFFECT_DEFAULTS["baseline_drift"], **effects["baseline_drift"]}
@@ -414,8 +422,18 @@ def acquire(clean_v, c: Campaign, noise_v: float, effects: dict, t_s, rng: np.ra
     lo, hi = c.adc_range_v
     lsb = (hi - lo) / 2**c.adc_bits
     out = np.zeros_like(v)
+    if c.noise.is_white:
+
+        def draw():
+            return rng.standard_normal(v.shape)
+    else:
+        filt = shaping_filter(c.noise, v.shape[-1], float(t_s[1] - t_s[0]), chain)
+
+        def draw():
+            return coloured_noise(v.shape, filt, rng)
+
     for _ in range(c.n_avg):
-        sample = v + noise_v * rng.standard_normal(v.shape)
+        sample = v + noise_v * draw()
         out += np.clip(np.round((sample - lo) / lsb), 0, 2**c.adc_bits - 1) * lsb + lo
     return out / c.n_avg
 
@@ -532,7 +550,7 @@ def simulate_configuration(
     nu, t = truth.nu_hz, truth.time_s
     chain = chain_from_tf(tf) if "transfer_function" in effects else IDEAL_CHAIN
     clean = detected_transients(t, truth.tau_s, chain, effects, campaign.amplitude_v)
-    signal = acquire(clean, campaign, noise_single_v, effects, t, s_rd)
+    signal = acquire(clean, campaign, noise_single_v, effects, t, s_rd, chain)
     rd = RingdownData(
         nu_hz=nu,
         signal_v=signal,
@@ -649,6 +667,7 @@ def simulate_campaign(
             "chain_variant": tf.variant,
             "chain_active": int("transfer_function" in effects),
             "noise_v_single": noise_single,
+            "noise_colour": campaign.noise.describe(),
         }
     bundle = Bundle(
         sample=simulated_sample(campaign, lt),

@@ -17,7 +17,7 @@ import numpy as np
 
 from bayes_tfcrds.bundle.reader import load_bundle
 from bayes_tfcrds.bundle.writer import save_bundle
-from bayes_tfcrds.fit.h_calibration import calibrate
+from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
 from bayes_tfcrds.fit.line_analysis import LineAnalysis, analyse_line
 from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign, spectral_points
@@ -78,8 +78,9 @@ def run_demo(
     save_bundle(bundle, path, truth=truth)
     bundle = load_bundle(path)
     analyses = []
-    for name, cfg in bundle.configs.items():
-        cal = calibrate(cfg)
+    for name, raw in bundle.configs.items():
+        cfg, noise, beat = account_for_noise_colour(raw)
+        cal = calibrate(cfg, beat=beat)
         for method in METHODS:
             for tc in T_CUTS_S:
                 analyses.append(
@@ -90,6 +91,7 @@ def run_demo(
                         t_cut_s=tc,
                         physical_bounds=True,
                         calibration=cal if method == "tf-crds" else None,
+                        noise=noise,
                     )
                 )
                 log(f"  {name} {method} t_cut {tc * 1e6:g} us done")

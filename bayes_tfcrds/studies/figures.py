@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.fit.h_calibration import calibrate
+from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import analyse_line, doppler_of
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
@@ -222,11 +222,12 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
     a_true = truth["line"]["line_area_hz_per_m"] if truth is not None else None
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     rows = []
-    for name, cfg in bundle.configs.items():
+    for name, raw in bundle.configs.items():
         for window, mk in (("letter", "s"), ("extinction", "o")):
+            cfg, noise, beat = account_for_noise_colour(raw, window)
             # each pipeline refines H with its own window, as the letter does: the refinement
             # can absorb part of a window's misrepresentation into f_c
-            cal = calibrate(cfg, t_cuts_s=study.t_cuts_s, window=window)
+            cal = calibrate(cfg, t_cuts_s=study.t_cuts_s, window=window, beat=beat)
             numbers[f"{name}_{window}_refined_f_c_hz"] = cal.params.f_c_hz
             vals = []
             for tc in study.t_cuts_s:
@@ -238,6 +239,7 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
                     t_cut_s=tc,
                     profile_name=study.profile,
                     calibration=cal,
+                    noise=noise,
                 )
                 ref = a_true if a_true is not None else float(r.reference_fit.line_area)
                 vals.append(float(r.line_fit.line_area) / ref - 1)

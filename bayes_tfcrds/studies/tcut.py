@@ -18,12 +18,12 @@ LETTER_BIAS = {
 def _tcut_config(args):
     bundle_path, name, methods, t_cuts, profile, window, physical = args
     from bayes_tfcrds.bundle.reader import load_bundle
-    from bayes_tfcrds.fit.h_calibration import calibrate
+    from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
     from bayes_tfcrds.fit.line_analysis import analyse_line
 
     bundle = load_bundle(bundle_path)
-    cfg = bundle.configs[name]
-    cal = calibrate(cfg, window=window) if "tf-crds" in methods else None
+    cfg, noise, beat = account_for_noise_colour(bundle.configs[name], window)
+    cal = calibrate(cfg, window=window, beat=beat) if "tf-crds" in methods else None
     rows = []
     for m in methods:
         for tc in t_cuts:
@@ -36,6 +36,7 @@ def _tcut_config(args):
                 profile_name=profile,
                 calibration=cal if m == "tf-crds" else None,
                 physical_bounds=physical,
+                noise=noise,
             )
             rows.append(
                 {

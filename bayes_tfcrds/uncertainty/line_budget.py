@@ -44,6 +44,7 @@ from bayes_tfcrds.fit.h_calibration import (
     BEAT_FREE,
     DEFAULT_T_CUTS,
     AnalysisError,
+    account_for_noise_colour,
     h_model_forms,
     refine_on_records,
 )
@@ -170,8 +171,9 @@ class BudgetResult:
 class _Inputs:
     """What every step reads.
 
-    The configuration, the line's Doppler width and centre (Hz), the random streams and the chain
-    files' stem (None: chains in memory).
+    The configuration (its ring-downs carrying their noise colour), the line's Doppler width and
+    centre (Hz), the random streams, the chain files' stem (None: chains in memory) and the
+    ring-downs' NoiseDiagnosis.
     """
 
     config: object
@@ -182,6 +184,7 @@ class _Inputs:
     streams: dict
     backend: str | None
     progress: bool
+    noise: object = None
 
     def chain_file(self, key: str) -> str | None:
         return None if self.backend is None else self.backend.replace(".h5", f"_{key}.h5")
@@ -298,6 +301,7 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     """
     check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
     check_overlap(config)
+    config, noise, _ = account_for_noise_colour(config, options.window)
     streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
     backend = None
     if outdir is not None:
@@ -313,6 +317,7 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
         streams,
         backend,
         progress,
+        noise,
     )
 
 
@@ -377,7 +382,7 @@ def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star) -> _HSensitivity:
         amplitude_v=fits.amplitude_v[good, j0],
         tf=h_star,
         window=options.window,
-        noise_v=rd.noise_v,
+        noise_v=rd.fit_noise_v,
         rows_of=good,
     )
     s_tau = tau_sensitivities(rd.time_s, rd.signal_v, names=BEAT_FREE, **rows)
@@ -430,7 +435,7 @@ def _noise_refinement_correlation(
     pos = {int(g): i for i, g in enumerate(sens.good)}
     in_fit = [j for j in range(recs.size) if int(recs[j]) in pos]
     rec = recs[in_fit]
-    noise_rec = None if rd.noise_v is None else np.asarray(rd.noise_v)[rec]
+    noise_rec = None if rd.fit_noise_v is None else np.asarray(rd.fit_noise_v)[rec]
     if noise_rec is None:
         noise_rec = fit_transients_noise(rd, rec, options.t_cut_s, h_star, options.window)
     infl = tau_influence(
@@ -793,6 +798,8 @@ def _summary(
             else None
         ),
     }
+    if inp.noise is not None:
+        summary["noise"] = inp.noise.to_dict()
     if h_star is not None:
         summary["transfer_function"] = {
             "f_c_hz": h_star.f_c_hz,
@@ -931,7 +938,7 @@ def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> list:
                 fits.amplitude_v[rows_j, j],
                 h_star,
                 options.window,
-                noise_v=rd.noise_v,
+                noise_v=rd.fit_noise_v,
                 rows_of=rows_j,
             )
             shifts = h_shifts(kern, h_draws, h_star, rows_j.size)
@@ -974,7 +981,7 @@ def run_budget(
     h_star = h_draws = refined = h_parts = beat = None
     if options.method == "tf-crds":  # 1. H
         beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
-            config, options, inp.streams["h"], inp.chain_file("h"), progress
+            inp.config, options, inp.streams["h"], inp.chain_file("h"), progress
         )
         if h_run is not None:
             runs["h"] = h_run

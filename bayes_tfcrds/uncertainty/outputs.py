@@ -40,6 +40,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
     refinement = (result.summary.get("transfer_function") or {}).get("refinement")
     if refinement:
         md += "\n\n" + refinement_markdown(refinement)
+    if result.summary.get("noise"):
+        md += "\n\n" + noise_markdown(result.summary["noise"])
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
     atomic_write_text(out / "budget.csv", mark + result.budget_a.to_csv())
@@ -72,6 +74,25 @@ def failed_banner(result: BudgetResult) -> str:
     return (
         f"FAILED: {result.status}. These numbers did not pass the convergence gates and must not "
         "be used; rerun with more steps (--steps, --max-steps) to resume the chains"
+    )
+
+
+def noise_markdown(noise: dict) -> str:
+    """The ring-down noise section of budget.md: whiteness tests and the tau variance factor."""
+    bp = noise["box_pierce"]
+    verdict = (
+        "white: decay-time uncertainties from the stated noise"
+        if noise["white"]
+        else "**coloured**: every ring-down fit and likelihood weights a record with "
+        "noise_v sqrt(kappa), so u(tau) is that of the correlated noise"
+    )
+    return (
+        "## Ring-down noise\n\n"
+        f"Box-Pierce over {bp['lags']} lags p = {bp['p_value']:.3g} (rho(1) = "
+        f"{noise['rho_1']:+.3f}); variance factor of tau kappa = {noise['kappa_median']:.3g} "
+        f"(records {noise['kappa_min']:.3g}-{noise['kappa_max']:.3g}, z = "
+        f"{noise['z_kappa']:+.1f} against white); residuals of {noise['residual_model']} at "
+        f"t_cut = {noise['t_cut_s'] * 1e6:g} us. Verdict: {verdict}."
     )
 
 
