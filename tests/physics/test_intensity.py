@@ -47,12 +47,12 @@ def _ratio_hapi(t, t_ref=296.0, version=2021):
     )
 
 
-def _ratio_formula(t, t_ref=296.0, c2=C2_CODATA):
+def _ratio_formula(t, t_ref=296.0, c2=C2_CODATA, e_cm=E_CM, nu0_cm=NU0_CM):
     """The formula of hapi's source with hapi's TIPS-2021 Q and a chosen c2."""
     t = np.atleast_1d(np.asarray(t, float))
 
     def pop(x):
-        return np.exp(-c2 * E_CM / x) * -np.expm1(-c2 * NU0_CM / x)
+        return np.exp(-c2 * e_cm / x) * -np.expm1(-c2 * nu0_cm / x)
 
     return _q_hapi(t_ref) / _q_hapi(t) * pop(t) / pop(t_ref)
 
@@ -100,6 +100,26 @@ def test_intensity_ratio_matches_hapi_within_its_c2():
     bound = abs(C2_HAPI - C2_CODATA) * E_CM * np.abs(1 / t - 1 / 296.0) + 1e-6
     assert np.all(np.abs(r / _ratio_hapi(t) - 1) <= bound)
     assert intensity_ratio(296.0, 296.0, nu0_hz, e_j) == 1.0
+
+
+def test_stimulated_emission_term_on_a_line_where_it_matters():
+    """At 6411 cm^-1 stimulated emission is exp(-31) of absorption and no test of R(23) sees it;
+    the pure-rotation R(0) line of 12C16O (3.845 cm^-1, E'' = 0) has h nu0 << k_B T, so the
+    emission ratio is about T_ref/T there."""
+    from bayes_tfcrds.core.constants import C
+
+    nu0_cm = 3.845033  # 12C16O J = 1 <- 0 (HITRAN), cm^-1
+    t = np.array([200.0, 250.0, 280.0, 310.0, 400.0])
+    r = intensity_ratio(t, 296.0, nu0_cm * 100 * C, 0.0)
+    np.testing.assert_allclose(r, _ratio_formula(t, e_cm=0.0, nu0_cm=nu0_cm), rtol=4e-7, atol=0)
+    # and its T derivative, where the emission term is -1/T instead of exp(-31)
+    d = intensity_log_derivative(t, nu0_cm * 100 * C, 0.0)
+    h = 0.05
+    fd = (
+        np.log(_ratio_formula(t + h, e_cm=0.0, nu0_cm=nu0_cm))
+        - np.log(_ratio_formula(t - h, e_cm=0.0, nu0_cm=nu0_cm))
+    ) / (2 * h)
+    np.testing.assert_allclose(d, fd, rtol=2e-5, atol=0)
 
 
 def test_conversion_is_invertible_and_the_line_helpers_agree():
