@@ -53,3 +53,20 @@ def test_s_at_296_k_is_recovered_from_a_campaign_at_another_temperature(temperat
     write_outputs(res, tmp_path)
     assert json.loads((tmp_path / "budget.json").read_text())["intensity"]["t_ref_k"] == 296.0
     assert "## line intensity S(T_ref = 296 K)" in (tmp_path / "budget.md").read_text()
+
+
+def test_linefit_reports_the_same_s_at_296_k():
+    """linefit's (and the demo's) intensity entry means what the budget's does: S(296 K)."""
+    from bayes_tfcrds.fit.line_analysis import analyse_line, intensity_entry
+
+    camp = replace(SMALL, temperature_k=310.0)
+    bundle, truth = simulate_campaign(["letter-D2"], np.random.default_rng(5), camp)
+    s = analyse_line(bundle, bundle.configs["D2"], "tf-crds").to_dict()["intensity"]
+    assert s["t_ref_k"] == 296.0 and s["sample_temperature_k"] == 310.0
+    # fit u only (no Type B rows): measured 0.02 u_fit from the truth
+    s_true = truth["line"]["intensity_ref_cm_per_molecule"]
+    assert abs(s["value"] - s_true) < 3 * s["u_fit_only"]
+    assert s["value_at_sample_temperature"] / s["value"] == pytest.approx(1.2049, rel=1e-3)
+    # a sample outside the partition-function table gets no S(T_ref), and says why
+    cold = intensity_entry(1.0e3, 1.0, 1.0e22, 50.0)
+    assert cold["value"] is None and "never extrapolated" in cold["note"]
