@@ -330,9 +330,10 @@ def cmd_budget(args) -> int:
         )
         return 3
     a, q, s = res.line_area, res.ratio, res.intensity
+    t_ref = res.summary["intensity"]["t_ref_k"]
     print(
         f"\nA = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = "
-        f"{res.en:.2f};  S = {s.value:.5e} +/- {s.u:.2e} cm/molecule",
+        f"{res.en:.2f};  S({t_ref:g} K) = {s.value:.5e} +/- {s.u:.2e} cm/molecule",
         file=sys.stderr,
     )
     return 0

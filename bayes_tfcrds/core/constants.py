@@ -10,6 +10,7 @@ import numpy as np
 
 C = 299_792_458.0  # speed of light, m/s (exact)
 K_B = 1.380_649e-23  # Boltzmann constant, J/K (exact)
+H_PLANCK = 6.626_070_15e-34  # Planck constant, J s (exact)
 AMU = 1.660_539_066_60e-27  # unified atomic mass unit, kg
 TORR = 101_325.0 / 760.0  # Pa per Torr
 ATM = 101_325.0  # Pa per standard atmosphere

@@ -25,6 +25,7 @@ from bayes_tfcrds.fit.h_calibration import (
 )
 from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
 from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
+from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
 
 
@@ -98,6 +99,27 @@ def check_t_cuts(config, t_cuts_s):
             )
 
 
+def intensity_entry(area_hz_per_m, u_hz_per_m, number_density_m3, temperature_k) -> dict:
+    """The JSON intensity of a line fit: S at the line data's T_ref (296 K), cm/molecule.
+
+    S(T) = A/N at the sample's temperature_k (K), referred to T_ref through Q(T), E'' and
+    stimulated emission (LineData.intensity_ratio), as the budget reports it; fit u only.
+    Outside the partition-function table (70-1000 K) S(T_ref) is None and the entry says why.
+    """
+    line = load_line()
+    s_t = float(intensity_to_cm_per_molecule(area_hz_per_m, number_density_m3))
+    u_t = float(intensity_to_cm_per_molecule(u_hz_per_m, number_density_m3))
+    entry = {"unit": "cm/molecule", "t_ref_k": line.temperature_k}
+    try:
+        to_ref = 1.0 / float(line.intensity_ratio(temperature_k))
+    except ValueError as exc:
+        entry.update(value=None, u_fit_only=None, note=str(exc))
+    else:
+        entry.update(value=s_t * to_ref, u_fit_only=u_t * to_ref)
+    entry.update(sample_temperature_k=float(temperature_k), value_at_sample_temperature=s_t)
+    return entry
+
+
 def fit_reference(bundle, config, profile_name: str = "qsdhcp"):
     """Profile fit to the configuration's CMDS mode shifts (the reference A_ref), or None."""
     if config.cmds is None:
@@ -124,6 +146,7 @@ class LineAnalysis:
     reference_fit: LineFit | None
     spectrum: SpectrumData
     number_density_m3: float
+    temperature_k: float
     n_points: int
     clipped_points: int
     unconverged_points: int
@@ -188,11 +211,7 @@ class LineAnalysis:
             "t_cut_s": float(self.t_cut_s),
             "profile": self.profile,
             "line_area": _area_entry(lf.line_area, lf.line_area_u),
-            "intensity": {
-                "value": float(intensity_to_cm_per_molecule(lf.line_area, n)),
-                "u_fit_only": float(intensity_to_cm_per_molecule(lf.line_area_u, n)),
-                "unit": "cm/molecule",
-            },
+            "intensity": intensity_entry(lf.line_area, lf.line_area_u, n, self.temperature_k),
             "parameters": {
                 name: {"value": float(v), "u": float(np.sqrt(lf.cov[i, i]))}
                 for i, (name, v) in enumerate(zip(lf.names, lf.values))
@@ -285,6 +304,7 @@ def analyse_line(
         number_density_m3=float(
             number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction)
         ),
+        temperature_k=sample.temperature_k,
         n_points=int(spec.nu_hz.size),
         clipped_points=int(np.sum(fits.clipped)),
         unconverged_points=int(np.sum(unconverged)),

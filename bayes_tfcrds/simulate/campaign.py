@@ -2,8 +2,11 @@
 
 The physics, in the order the light and the signal meet it:
 
-1. **Sample and line** (12C16O (3-0) R(23) by default): alpha(nu) = S N Re g(nu) from the
-   qSDHCP family, plus optional spectrum-level effects (``etalon``, ``neighbour_line``).
+1. **Sample and line** (12C16O (3-0) R(23) by default): alpha(nu) = S(T) N Re g(nu) from the
+   qSDHCP family, plus optional spectrum-level effects (``etalon``, ``neighbour_line``). The
+   line data hold S at T_ref = 296 K; S(T) at the campaign's temperature follows from it through
+   Q(T), E'' and stimulated emission (:meth:`LineData.intensity_ratio`), as N, the Doppler width
+   and the air width (its temperature exponent) follow T.
 2. **Cavity**: at each cavity mode the intracavity power is steady before laser extinction
    (t = 0) and decays with 1/tau = c (alpha + alpha_loss) after it; optional transient-level
    optical effects add terms (``second_mode``, ``mode_beating``, ``extinction_tail``).
@@ -262,11 +265,18 @@ def spectral_points(c: Campaign) -> np.ndarray:
 
 @dataclass(frozen=True)
 class LineTruth:
-    """The absorption line the campaign is made from (SI: Hz, Hz/m)."""
+    """The absorption line the campaign is made from (SI: Hz, Hz/m, K).
+
+    intensity_cm_per_molecule is S at the campaign's temperature (the S of A = S N),
+    intensity_ref_cm_per_molecule S at the line data's reference temperature t_ref_k, the value an
+    analysis that refers its S to T_ref should recover.
+    """
 
     nu0_hz: float
-    line_area_hz_per_m: float  # A = S N
-    intensity_cm_per_molecule: float  # S (edge unit, labelled)
+    line_area_hz_per_m: float  # A = S(T) N
+    intensity_cm_per_molecule: float  # S(T) (edge unit, labelled)
+    intensity_ref_cm_per_molecule: float  # S(T_ref) (edge unit, labelled)
+    t_ref_k: float
     doppler_hwhm_hz: float
     gamma0_hz: float
     gamma2_hz: float
@@ -276,7 +286,12 @@ class LineTruth:
     profile: str
 
 
-def line_truth(c: Campaign, effects: dict) -> LineTruth:
+def line_truth(c: Campaign, effects: dict, intensity_ref_cm_per_molecule=None) -> LineTruth:
+    """The letter's line at the campaign's pressure and temperature, with ``effects``' shape.
+
+    ``intensity_ref_cm_per_molecule``: S(T_ref) to use instead of the line data's (a drawn truth);
+    S(T) and A = S(T) N follow from it at the campaign's T.
+    """
     line = load_line()
     shape = line.shape_at(c.pressure_pa, c.temperature_k)
     g0, d0 = shape["gamma0_hz"], shape.get("delta0_hz", 0.0)
@@ -291,11 +306,18 @@ def line_truth(c: Campaign, effects: dict) -> LineTruth:
         nvr = hc.get("nu_vc_ratio")
         nvc = nvr * g0 if nvr is not None else shape.get("nu_vc_hz", 0.0)
     n = number_density(c.pressure_pa, c.temperature_k)
-    s_cm = line.intensity_cm_per_molecule
+    s_ref = (
+        line.intensity_cm_per_molecule
+        if intensity_ref_cm_per_molecule is None
+        else float(intensity_ref_cm_per_molecule)
+    )
+    s_cm = s_ref * line.intensity_ratio(c.temperature_k)
     return LineTruth(
         nu0_hz=line.nu0_hz,
         line_area_hz_per_m=float(intensity_from_cm_per_molecule(s_cm, n)),
         intensity_cm_per_molecule=s_cm,
+        intensity_ref_cm_per_molecule=s_ref,
+        t_ref_k=line.temperature_k,
         doppler_hwhm_hz=float(doppler_hwhm_hz(line.nu0_hz, c.temperature_k, line.mass_u)),
         gamma0_hz=g0,
         gamma2_hz=g2,

@@ -154,13 +154,13 @@ def _comparison_figure(plt, rep, ok: list) -> None:
         label="8.0603(70)e-25 (Cygan et al. 2025)",
     )
     ax2.set_xticks(x, [n for n, _ in ok])
-    ax2.set_ylabel("S (cm/molecule)")
+    ax2.set_ylabel("S(296 K) (cm/molecule)")
     ax2.legend(fontsize=7)
     fig.tight_layout()
     rep.add_figure(
         fig,
         "TF-CRDS line areas relative to CMDS (left) and line intensities against the reference "
-        "value (right), with standard uncertainties from the budgets.",
+        "value (right), both at 296 K, with standard uncertainties from the budgets.",
     )
 
 
@@ -227,8 +227,8 @@ def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
             "u(A) (cm^-2)",
             "A/A_ref",
             "E_n (k=2)",
-            "S (cm/molecule)",
-            "E_n vs 8.0603(70)e-25",
+            "S(296 K) (cm/molecule)",
+            "E_n vs 8.0603(70)e-25 (296 K)",
         ],
         rows,
     )

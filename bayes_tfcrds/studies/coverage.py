@@ -29,7 +29,6 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from bayes_tfcrds.core.constants import intensity_from_cm_per_molecule, number_density
 from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.output.report import git_commit
@@ -102,7 +101,7 @@ class TruthDistribution:
 
 @dataclass(frozen=True)
 class CampaignDraw:
-    """One campaign's truth (SI; intensity in cm/molecule, the line data's unit)."""
+    """One campaign's truth (SI; intensity S(T_ref) in cm/molecule, the line data's unit)."""
 
     preset: str
     intensity_cm_per_molecule: float
@@ -164,23 +163,20 @@ def preset_draw(preset: str, campaign: Campaign = Campaign()) -> CampaignDraw:
 def drawn_line(draw: CampaignDraw, campaign: Campaign) -> LineTruth:
     """The letter's line (speed dependence and hard collisions on) with the drawn parameters.
 
-    The drawn Gamma0 scale, Gamma2/Gamma0, nu_VC/Gamma0 and intensity, at the campaign's pressure.
+    The drawn Gamma0 scale, Gamma2/Gamma0, nu_VC/Gamma0 and intensity (S at T_ref, converted to
+    the campaign's T), at the campaign's pressure.
     """
-    lt0 = line_truth(campaign, {"speed_dependence": {}, "hard_collisions": {}})
-    g0 = lt0.gamma0_hz * draw.gamma0_factor
-    area = float(
-        intensity_from_cm_per_molecule(
-            draw.intensity_cm_per_molecule,
-            number_density(campaign.pressure_pa, campaign.temperature_k),
-        )
+    lt0 = line_truth(
+        campaign,
+        {"speed_dependence": {}, "hard_collisions": {}},
+        intensity_ref_cm_per_molecule=draw.intensity_cm_per_molecule,
     )
+    g0 = lt0.gamma0_hz * draw.gamma0_factor
     return replace(
         lt0,
         gamma0_hz=g0,
         gamma2_hz=draw.gamma2_ratio * g0,
         nu_vc_hz=draw.nu_vc_ratio * g0,
-        line_area_hz_per_m=area,
-        intensity_cm_per_molecule=draw.intensity_cm_per_molecule,
     )
 
 

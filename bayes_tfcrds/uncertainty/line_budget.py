@@ -15,8 +15,10 @@ Pipeline (each step a function of the bundle, the options and the seed):
    A_ref: emcee on the CMDS shifts.
 4. **Budget** (GUM, JCGM 100): ring-down noise, the beat-note posterior of H (one row: all its
    parameters through H(f)), each refined H parameter (correlated with the noise through the
-   shared records), the t_cut choice and the line-shape model choice for u(A); pressure and
-   temperature for S = A/N; the CMDS reference for A/A_ref and E_n.
+   shared records), the t_cut choice and the line-shape model choice for u(A); pressure,
+   temperature and mole fraction for the line intensity S at T_ref = 296 K (from S(T) = A/N at
+   the sample's T through Q(T), E'' and stimulated emission); the CMDS reference for A/A_ref
+   and E_n.
 
 The samplers' convergence gates are part of the result: a run that fails them is reported as
 failed, and its numbers are never given as a result.
@@ -33,9 +35,7 @@ import numpy as np
 from bayes_tfcrds._version import __version__
 from bayes_tfcrds.core.constants import (
     C,
-    intensity_to_cm_per_molecule,
     line_area_to_cm2,
-    number_density,
 )
 from bayes_tfcrds.core.fingerprint import content_hash
 from bayes_tfcrds.core.gum import Budget, Component, normalized_error
@@ -158,7 +158,11 @@ class BudgetResult:
 
     @property
     def intensity(self) -> Quantity | None:
-        """S = A/N (cm/molecule) with its combined standard uncertainty; None for a failed run."""
+        """S at T_ref = 296 K (cm/molecule) with its combined u; None for a failed run.
+
+        S(T) = A/N at the sample's T referred to T_ref through Q(T), E'' and stimulated emission
+        (step 8); ``summary["intensity"]`` also gives S at the sample's T.
+        """
         return self._quantity("intensity")
 
     @property
@@ -677,38 +681,58 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
     )
 
 
-def _budget_s(sample, a_hat: float, u_a: float) -> Budget:
-    """Step 8: S = A/N with the pressure and temperature rows (bundle uncertainties)."""
-    n_dens = float(number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction))
-    s_val = float(intensity_to_cm_per_molecule(a_hat, n_dens))
+def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
+    """Step 8: the line intensity at the line data's T_ref (296 K) from A, p, x and T.
+
+    S(T_ref) = A k_B T/(p x) Q(T)/Q(T_ref) exp(E''/k_B (1/T - 1/T_ref)) times the
+    stimulated-emission ratio (LineData.reference_intensity_from_area), so that it compares
+    with the reference intensity at 296 K whatever T the campaign ran at. Sensitivities:
+    c_A = S/A, c_p = -S/p, c_x = -S/x and c_T = S d ln S(T_ref)/dT with
+    d ln S(T_ref)/dT = 1/T + d ln Q/dT - E''/(k_B T^2) (+ the stimulated-emission term), which
+    is -0.0107 /K for CO (3-0) R(23) at 296 K: the lower-state population dominates the 1/T of
+    the number density. u(p), u(T) from the bundle; it has no u(x).
+    """
+    line = load_line() if line is None else line
+    t, p, x = sample.temperature_k, sample.pressure_pa, sample.mole_fraction
+    s_ref = float(line.reference_intensity_from_area(a_hat, p, t, x))
+    dlns_dt = 1.0 / t - float(line.intensity_log_derivative(t))
     return Budget(
-        quantity="line intensity S = A/N",
-        value=s_val,
+        quantity=f"line intensity S(T_ref = {line.temperature_k:g} K)",
+        value=s_ref,
         unit="cm/molecule",
         components=(
             Component(
                 "line area A",
                 a_hat,
                 u_a,
-                s_val / a_hat,
+                s_ref / a_hat,
                 "Hz/m",
                 note="combined u(A) from the A budget",
             ),
             Component(
                 "pressure p",
-                sample.pressure_pa,
+                p,
                 sample.pressure_u_pa,
-                -s_val / sample.pressure_pa,
+                -s_ref / p,
                 "Pa",
                 note="bundle /sample@pressure_u_pa",
             ),
             Component(
                 "temperature T",
-                sample.temperature_k,
+                t,
                 sample.temperature_u_k,
-                s_val / sample.temperature_k,
+                s_ref * dlns_dt,
                 "K",
-                note="bundle /sample@temperature_u_k",
+                note="bundle /sample@temperature_u_k; d ln S(T_ref)/dT = 1/T + d ln Q/dT - "
+                f"E''/(k_B T^2) = {dlns_dt:+.4g} /K (Q: TIPS-2021)",
+            ),
+            Component(
+                "mole fraction x",
+                x,
+                0.0,
+                -s_ref / x,
+                "1",
+                note="bundle /sample@mole_fraction; the bundle gives no u(x), taken as exact",
             ),
         ),
     )
@@ -755,6 +779,7 @@ def _summary(
     s_val = budget_s.value
     line = load_line()
     s_ref, u_s_ref = line.intensity_cm_per_molecule, line.intensity_u_cm_per_molecule
+    t_sample = inp.sample.temperature_k
     summary = {
         "configuration": inp.config.name,
         "method": options.method,
@@ -775,6 +800,11 @@ def _summary(
             "value": s_val,
             "u": budget_s.combined_u,
             "unit": "cm/molecule",
+            "t_ref_k": line.temperature_k,
+            "model": "S(T_ref) = A k_B T/(p x) Q(T)/Q(T_ref) exp(c2 E'' (1/T - 1/T_ref)) "
+            "[1 - exp(-c2 nu0/T_ref)]/[1 - exp(-c2 nu0/T)], Q from TIPS-2021",
+            "sample_temperature_k": t_sample,
+            "value_at_sample_temperature": s_val * float(line.intensity_ratio(t_sample)),
             "reference": s_ref,
             "reference_u": u_s_ref,
             "en": normalized_error(s_val, 2 * budget_s.combined_u, s_ref, 2 * u_s_ref),

@@ -260,3 +260,41 @@ def test_every_effect_has_a_test_above():
     names = {n.split("test_effect_")[1] for n in globals() if n.startswith("test_effect_")}
     for effect in EFFECTS:
         assert any(n.startswith(effect) for n in names), effect
+
+
+@pytest.mark.parametrize("temperature_k", [280.0, 310.0])
+def test_a_campaign_at_another_temperature_makes_the_line_of_that_temperature(temperature_k):
+    """S(T) from the 296 K intensity by the HITRAN conversion (hapi's Q and formula, CODATA c2),
+    N = p/(k_B T), the Doppler width ~ sqrt(T); the truth records S(T) and S(T_ref)."""
+    import contextlib
+    import io
+
+    from bayes_tfcrds.core.constants import K_B
+    from bayes_tfcrds.simulate.campaign import line_truth
+
+    with contextlib.redirect_stdout(io.StringIO()):  # hapi prints a banner on import
+        import hapi
+
+    c2, e_cm, nu_cm = 1.438776877, 1059.3718, 6410.879558  # cm K; the line file's E'', nu0
+
+    def population(t):
+        q = hapi.partitionSum(5, 1, t, version=2021)
+        return np.exp(-c2 * e_cm / t) * -np.expm1(-c2 * nu_cm / t) / q
+
+    camp = replace(TINY, temperature_k=temperature_k)
+    lt, lt_296 = line_truth(camp, {}), line_truth(replace(camp, temperature_k=296.0), {})
+    s_t = 8.0603e-25 * population(temperature_k) / population(296.0)
+    assert lt.intensity_cm_per_molecule == pytest.approx(s_t, rel=1e-6, abs=0)
+    assert lt.intensity_ref_cm_per_molecule == 8.0603e-25 and lt.t_ref_k == 296.0
+    # A = S(T) N with N = p/(k_B T), S in cm/molecule -> A in Hz/m: x 1e-6 (cm^3) x 1e4 c
+    n = camp.pressure_pa / (K_B * temperature_k)
+    assert lt.line_area_hz_per_m == pytest.approx(s_t * n * 1e-6 * 1e4 * 299792458.0, rel=1e-6)
+    assert lt.doppler_hwhm_hz == pytest.approx(
+        lt_296.doppler_hwhm_hz * np.sqrt(temperature_k / 296.0), rel=1e-12
+    )
+    # a whole (tiny) campaign records both intensities in its truth and the T in its sample
+    bundle, truth = simulate_campaign(["letter-D2"], np.random.default_rng(3), camp)
+    assert bundle.sample.temperature_k == temperature_k
+    assert truth["line"]["intensity_cm_per_molecule"] == pytest.approx(s_t, rel=1e-6, abs=0)
+    assert truth["line"]["intensity_ref_cm_per_molecule"] == 8.0603e-25
+    assert truth["line"]["t_ref_k"] == 296.0

@@ -31,25 +31,64 @@ def test_ratio_step_is_first_order_propagation_of_a_over_a_ref():
     assert lb._budget_ratio(1.0, 0.1, None) is None
 
 
-def test_intensity_step_sensitivities_are_those_of_a_over_n():
-    """S = A/N at the measured T, N = p x/(k_B T): c_A = S/A, c_p = -S/p, c_T = +S/T."""
+def _s_ref_oracle(a_hz_per_m, p_pa, t_k, x):
+    """S(296 K) in cm/molecule from A, p, T, x: the HITRAN conversion with hapi's TIPS-2021 Q and
+    the formula of hapi's EnvironmentDependency_Intensity (CODATA c2), written out here so that
+    the budget step is checked against a model it does not share code with."""
+    import contextlib
+    import io
+
+    with contextlib.redirect_stdout(io.StringIO()):  # hapi prints a banner on import
+        import hapi
+
+    c2, e_cm, nu_cm, k_b, c = 1.438776877, 1059.3718, 6410.879558, 1.380649e-23, 299792458.0
+
+    def population(t):  # Boltzmann factor x stimulated emission / Q
+        q = hapi.partitionSum(5, 1, t, version=2021)
+        return np.exp(-c2 * e_cm / t) * -np.expm1(-c2 * nu_cm / t) / q
+
+    s_t = a_hz_per_m / (1e4 * c) / (p_pa * x / (k_b * t_k) * 1e-6)  # A/N, cm/molecule
+    return s_t * population(296.0) / population(t_k)
+
+
+@pytest.mark.parametrize("temperature_k", [280.0, 296.0, 310.0])
+def test_intensity_step_is_s_at_296_k_with_the_sensitivities_of_the_full_model(temperature_k):
+    """S(296 K) = A k_B T/(p x) Q(T)/Q(296) exp(c2 E'' (1/T - 1/296)) x stimulated emission:
+    value and every c_i against central differences of an independent model (hapi's Q), and
+    c_T = S d ln S(296 K)/dT, about -0.0107 S /K, never the +S/T of S = A/N at T."""
     sample = SimpleNamespace(
         pressure_pa=666.6,
         pressure_u_pa=0.5,
-        temperature_k=296.0,
+        temperature_k=temperature_k,
         temperature_u_k=0.1,
-        mole_fraction=1.0,
+        mole_fraction=0.98,
     )
-    bud = lb._budget_s(sample, 3.0e2, 1.5)
-    s = bud.value
-    c = {comp.name: comp.sensitivity for comp in bud.components}
+    a, u_a = 3.0e2, 1.5
+    bud = lb._budget_s(sample, a, u_a)
+    x0 = {"A": a, "p": 666.6, "T": temperature_k, "x": 0.98}
+    s = _s_ref_oracle(*x0.values())
     # S is ~1e-25 cm/molecule: relative tolerances only (pytest.approx's default abs=1e-12
-    # would accept any sign)
-    assert c["line area A"] == pytest.approx(s / 3.0e2, rel=1e-12, abs=0)
-    assert c["pressure p"] == pytest.approx(-s / 666.6, rel=1e-12, abs=0)
-    assert c["temperature T"] == pytest.approx(s / 296.0, rel=1e-12, abs=0)
-    rel = np.sqrt((1.5 / 3.0e2) ** 2 + (0.5 / 666.6) ** 2 + (0.1 / 296.0) ** 2)
-    assert bud.combined_u == pytest.approx(s * rel, rel=1e-12, abs=0)
+    # would accept any sign); 4e-7 covers the two Q interpolations (TIPS-2021 nodes, 5e-8 each)
+    assert bud.value == pytest.approx(s, rel=4e-7, abs=0)
+    assert "296" in bud.quantity and bud.unit == "cm/molecule"
+    names = {"A": "line area A", "p": "pressure p", "T": "temperature T", "x": "mole fraction x"}
+    c = {comp.name: comp.sensitivity for comp in bud.components}
+    steps = {"A": 1e-4 * a, "p": 1e-4 * 666.6, "T": 0.05, "x": 1e-5}
+    for key, h in steps.items():
+        up, down = dict(x0), dict(x0)
+        up[key] += h
+        down[key] -= h
+        fd = (_s_ref_oracle(*up.values()) - _s_ref_oracle(*down.values())) / (2 * h)
+        # central differences: O(h^2) ~ 1e-8 relative; hapi's piecewise-Lagrange Q has a
+        # derivative 1e-5 off the spline's (the T row), so 1e-4 relative
+        assert c[names[key]] == pytest.approx(fd, rel=1e-4, abs=0), key
+    dlns_dt = c["temperature T"] / bud.value
+    # -c2 E''/T^2 dominates: -0.0123 /K at 280 K, -0.0106 at 296 K, -0.0094 at 310 K
+    assert -0.0125 < dlns_dt < -0.0092
+    if temperature_k == 296.0:
+        assert dlns_dt == pytest.approx(-0.010647, rel=1e-3)
+    rel = np.sqrt((u_a / a) ** 2 + (0.5 / 666.6) ** 2 + (dlns_dt * 0.1) ** 2)
+    assert bud.combined_u == pytest.approx(bud.value * rel, rel=1e-12, abs=0)
 
 
 def _run(passed):

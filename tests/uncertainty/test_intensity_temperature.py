@@ -1,0 +1,72 @@
+"""The budget's S at T_ref = 296 K from campaigns at other temperatures (issue #17, item 1).
+
+Small simulated campaigns at 280 K and 310 K (the simulator makes the line of that T: S(T) from
+the 296 K intensity through Q(T), E'' and stimulated emission), analysed by the budget's fast
+(Laplace) path: S(296 K) must come back to the simulator's truth within its stated u, where the
+old model (S = A/N at the measured T, c_T = +S/T) is off by more than a hundred u.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
+from bayes_tfcrds.uncertainty.outputs import write_outputs
+
+SMALL = replace(Campaign(), n_points=31, n_samples=8192, n_avg=10)
+FAST = BudgetOptions(posterior="laplace", t_cuts_s=(4e-6, 8e-6))
+
+
+@pytest.mark.parametrize("temperature_k", [280.0, 310.0])
+def test_s_at_296_k_is_recovered_from_a_campaign_at_another_temperature(temperature_k, tmp_path):
+    camp = replace(SMALL, temperature_k=temperature_k)
+    bundle, truth = simulate_campaign(["letter-D2"], np.random.default_rng(17), camp)
+    res = run_budget(bundle, bundle.configs["D2"], FAST, np.random.default_rng(2))
+    s = res.summary["intensity"]
+    assert s["unit"] == "cm/molecule" and s["t_ref_k"] == 296.0
+    assert s["sample_temperature_k"] == temperature_k
+    s_true = truth["line"]["intensity_ref_cm_per_molecule"]
+    assert s_true == s["reference"] == 8.0603e-25  # the simulator's line is the reference's
+    # within its stated u (measured: +0.57 u at 280 K, +0.58 u at 310 K, u = 0.11-0.12 %)
+    assert abs(s["value"] - s_true) < s["u"], (s["value"] / s_true - 1, s["u"] / s_true)
+    assert abs(s["en"]) < 1
+    # S at the sample's T is the truth's S(T), the quantity the old budget reported
+    s_t_true = truth["line"]["intensity_cm_per_molecule"]
+    ratio = s["value_at_sample_temperature"] / s["value"]
+    assert abs(s["value_at_sample_temperature"] - s_t_true) < s["u"] * ratio
+    # the old model: S = A/N at T compared with S(296 K), u from c_T = +S/T: -21 % at 280 K,
+    # +20 % at 310 K, i.e. more than a hundred of its u away from the truth
+    old = s["value_at_sample_temperature"]
+    rows = {c.name: c for c in res.budget_s.components}
+    rel_u_old = np.sqrt(
+        (rows["line area A"].u / rows["line area A"].value) ** 2
+        + (rows["pressure p"].u / rows["pressure p"].value) ** 2
+        + (rows["temperature T"].u / temperature_k) ** 2
+    )
+    assert abs(old - s_true) > 100 * old * rel_u_old
+    # the files say which temperature S refers to
+    write_outputs(res, tmp_path)
+    assert json.loads((tmp_path / "budget.json").read_text())["intensity"]["t_ref_k"] == 296.0
+    assert "## line intensity S(T_ref = 296 K)" in (tmp_path / "budget.md").read_text()
+
+
+def test_linefit_reports_the_same_s_at_296_k():
+    """linefit's (and the demo's) intensity entry means what the budget's does: S(296 K)."""
+    from bayes_tfcrds.fit.line_analysis import analyse_line, intensity_entry
+
+    camp = replace(SMALL, temperature_k=310.0)
+    bundle, truth = simulate_campaign(["letter-D2"], np.random.default_rng(5), camp)
+    s = analyse_line(bundle, bundle.configs["D2"], "tf-crds").to_dict()["intensity"]
+    assert s["t_ref_k"] == 296.0 and s["sample_temperature_k"] == 310.0
+    # fit u only (no Type B rows): measured 0.02 u_fit from the truth
+    s_true = truth["line"]["intensity_ref_cm_per_molecule"]
+    assert abs(s["value"] - s_true) < 3 * s["u_fit_only"]
+    assert s["value_at_sample_temperature"] / s["value"] == pytest.approx(1.2049, rel=1e-3)
+    # a sample outside the partition-function table gets no S(T_ref), and says why
+    cold = intensity_entry(1.0e3, 1.0, 1.0e22, 50.0)
+    assert cold["value"] is None and "never extrapolated" in cold["note"]
