@@ -176,8 +176,8 @@ class _Inputs:
     """What every step reads.
 
     The configuration (its ring-downs carrying their noise colour), the line's Doppler width and
-    centre (Hz), the random streams, the chain files' stem (None: chains in memory) and the
-    ring-downs' NoiseDiagnosis.
+    centre (Hz), the random streams, the chain files' stem (None: chains in memory), the
+    ring-downs' NoiseDiagnosis and the beat-note fit.
     """
 
     config: object
@@ -189,6 +189,7 @@ class _Inputs:
     backend: str | None
     progress: bool
     noise: object = None
+    beat: object = None  # the beat-note fit (made once, for the noise diagnosis and H)
 
     def chain_file(self, key: str) -> str | None:
         return None if self.backend is None else self.backend.replace(".h5", f"_{key}.h5")
@@ -305,7 +306,7 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     """
     check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
     check_overlap(config)
-    config, noise, _ = account_for_noise_colour(config, options.window)
+    config, noise, beat = account_for_noise_colour(config, options.window)
     streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
     backend = None
     if outdir is not None:
@@ -322,6 +323,7 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
         backend,
         progress,
         noise,
+        beat,
     )
 
 
@@ -1011,7 +1013,7 @@ def run_budget(
     h_star = h_draws = refined = h_parts = beat = None
     if options.method == "tf-crds":  # 1. H
         beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
-            inp.config, options, inp.streams["h"], inp.chain_file("h"), progress
+            inp.config, options, inp.streams["h"], inp.chain_file("h"), progress, inp.beat
         )
         if h_run is not None:
             runs["h"] = h_run

@@ -147,12 +147,14 @@ def ring_down_weights(refined, beat_draws, n: int, rng) -> RingDownWeights:
     return RingDownWeights(pool=int(w.size), ess=ess, picks=picks)
 
 
-def _beat_posterior(config, options):
+def _beat_posterior(config, options, beat=None):
     """The beat-note fit, its posterior (A_r branch fixed clear of 0), its modes, over-dispersed p0.
 
+    ``beat`` is the beat-note fit when already made (with BEAT_FREE, the options' window).
     Returns (fit, posterior, p0 function, the mode mixture or None when the fit found one mode).
     """
-    beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
+    if beat is None:
+        beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
     tfd = config.transfer_function
     sd0 = np.sqrt(np.diag(beat.cov))
     a_r, u_a_r = beat.params.a_r, sd0[BEAT_FREE.index("a_r")]
@@ -339,13 +341,14 @@ def _joint_draws(beat, post, run, refined, options, rng):
     return draws, beat_draws, weights
 
 
-def h_posterior(config, options, rng, backend, progress):
+def h_posterior(config, options, rng, backend, progress, beat=None):
     """The posterior of H: beat-note MCMC (or Laplace), updated by the ring-downs.
 
-    Returns (beat-note fit, refinement or None, H*, H draws (n, 4), sampler run or None, the draw's
-    decomposition into beat-note and refined parts).
+    ``beat`` the beat-note fit when already made. Returns (beat-note fit, refinement or None, H*,
+    H draws (n, 4), sampler run or None, the draw's decomposition into beat-note and refined
+    parts).
     """
-    beat, post, p0, modes = _beat_posterior(config, options)
+    beat, post, p0, modes = _beat_posterior(config, options, beat)
     run = None
     if options.posterior != "laplace":
         ndim = len(post.sample_names)
