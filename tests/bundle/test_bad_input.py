@@ -267,7 +267,7 @@ def test_truncated_files_are_refused(good_bundle_path, capsys, cut):
     assert "Traceback" not in capsys.readouterr().out
 
 
-def test_truncated_file_is_refused_by_every_command(good_bundle_path, tmp_path):
+def test_truncated_file_is_refused_by_every_command(good_bundle_path, tmp_path, capsys):
     _truncate_to(0.5)(good_bundle_path)
     out = tmp_path / "out"
     for argv in (
@@ -275,8 +275,10 @@ def test_truncated_file_is_refused_by_every_command(good_bundle_path, tmp_path):
         ["linefit", str(good_bundle_path), "-o", str(out / "x.json")],
         ["budget", str(good_bundle_path), "-o", str(out / "b")],
     ):
-        with pytest.raises(SystemExit, match="/: truncated or corrupt HDF5 file"):
-            main(argv)
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+        assert "not a valid bundle: /: truncated or corrupt HDF5 file" in err
     assert not out.exists()
 
 
@@ -476,6 +478,52 @@ def test_t_cut_that_is_not_a_number_is_refused(campaign, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["fit", str(campaign), "--tcut", "4us", "-o", str(tmp_path / "x.csv")])
     assert "expected comma-separated numbers in seconds, got '4us'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "command, tcut, phrase",
+    [
+        ("fit", ",", "expected at least one number in seconds, got ','"),
+        ("discover", ",", "expected at least one number in seconds, got ','"),
+        ("fit", "nan", "expected finite numbers in seconds, got 'nan'"),
+        ("fit", "4e-6,inf", "expected finite numbers in seconds, got '4e-6,inf'"),
+        ("linefit", "nan", "expected finite numbers in seconds, got 'nan'"),
+        ("fit", "4e-6,4e-6", "a value is given more than once in '4e-6,4e-6'"),
+    ],
+)
+def test_t_cut_lists_without_a_usable_value_are_refused_as_options(
+    campaign, tmp_path, capsys, command, tcut, phrase
+):
+    # issue 20: --tcut=, gave numpy's "zero-size array to reduction operation" after the H fit
+    # (discover took it as "no --tcut" and ran with its defaults); nan reached the analysis
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as info:
+        main([command, str(campaign), "--config", "D2", f"--tcut={tcut}", "-o", str(out)])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument --tcut: {phrase}" in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+def test_control_characters_in_a_configuration_name_are_escaped_in_error_lines(
+    campaign, tmp_path, capsys
+):
+    # issue 20: a newline or ANSI escape in a name rewrote the terminal in error lines
+    evil = tmp_path / "evil.h5"
+    shutil.copy(campaign, evil)
+    name = "D\x1b[31mX\nY"
+    with h5py.File(evil, "a") as f:
+        f.move("configs/D2", f"configs/{name}")
+    for command in ("fit", "linefit", "budget", "discover"):
+        out = tmp_path / command
+        argv = [command, str(evil), "--config", name, "--tcut", "1", "-o", str(out)]
+        assert main(argv) in (1, 2)
+        err = capsys.readouterr().err
+        assert err.startswith("error: t_cut = 1 s is beyond the record of /configs/D") and (
+            "D\\x1b[31mX\\nY" in err
+        ), err
+        assert err.count("\n") == 1 and "\x1b" not in err, err
+        assert not out.exists()
 
 
 def _far_cmds(campaign, tmp_path):

@@ -100,6 +100,7 @@ def test_missing_folders_of_a_file_output_are_created(tmp_path):
         (["--effect", "speed_dependence:gamma2_ratio=-10"], "gamma2_ratio = -10.0"),
         (["--effect", "etalon:period_hz=inf"], "period_hz = inf"),
         (["--preset", "letter-D1", "--preset", "letter-D1"], "letter-D1 given more than once"),
+        (["--effect", "etalon", "--effect", "etalon:phase_rad=1"], "--effect etalon given more"),
     ],
 )
 def test_simulate_refuses_impossible_settings_in_one_line(tmp_path, capsys, options, phrase):
@@ -124,3 +125,17 @@ def test_discover_refuses_options_that_give_nonsense(tmp_path, capsys, options, 
     assert main(["discover", str(bundle), "--config", "D2", *options, "-o", str(out)]) == 2
     assert phrase in capsys.readouterr().err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["fit", "linefit"])
+def test_fit_and_linefit_into_a_directory_are_refused_before_any_work(tmp_path, capsys, command):
+    # issue 20: -o <directory> raised IsADirectoryError after the fit and left a .tmp behind
+    bundle = tmp_path / "c.h5"
+    assert main(["simulate", "--points", "9", "--samples", "1024", "-o", str(bundle)]) == 0
+    capsys.readouterr()
+    folder = tmp_path / "results"
+    folder.mkdir()
+    assert main([command, str(bundle), "--config", "D2", "-o", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {folder} is a directory; give a file name inside it\n"
+    assert not list(folder.iterdir()) and not list(tmp_path.glob(".*tmp*"))
