@@ -82,10 +82,6 @@ def _config(bundle, name):
     return bundle.configs[name]
 
 
-#: problems of a refused bundle named on the error line (validate lists them all)
-_SHOWN_PROBLEMS = 3
-
-
 def _load(path):
     from bayes_tfcrds.bundle.reader import load_bundle
     from bayes_tfcrds.bundle.records import BundleError
@@ -93,16 +89,7 @@ def _load(path):
     try:
         return load_bundle(path)
     except BundleError as exc:
-        shown = "; ".join(str(v) for v in exc.violations[:_SHOWN_PROBLEMS])
-        more = len(exc.violations) - _SHOWN_PROBLEMS
-        raise Refused(
-            f"{exc.file}: not a valid bundle: {shown}"
-            + (
-                f"; and {more} more (bayes-tfcrds validate {exc.file} lists them)"
-                if more > 0
-                else ""
-            )
-        ) from None
+        raise Refused(exc.one_line()) from None
 
 
 def cmd_validate(args) -> int:
