@@ -652,7 +652,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from bayes_tfcrds.output.files import OutputPathError
+    from bayes_tfcrds.output.files import FolderBusyError, OutputPathError
 
     args = build_parser().parse_args(argv)
     try:
@@ -660,6 +660,8 @@ def main(argv=None) -> int:
         return int(args.func(args) or 0)
     except OutputPathError as exc:  # the output rule (output.files.check_replaceable), any command
         return _fail(exc, 2)
+    except FolderBusyError as exc:  # another run holds -o (output.files.folder_lock)
+        return _fail(exc, 1)
     except Refused as exc:
         return _fail(exc, exc.code)
 

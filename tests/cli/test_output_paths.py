@@ -139,3 +139,17 @@ def test_fit_and_linefit_into_a_directory_are_refused_before_any_work(tmp_path, 
     err = capsys.readouterr().err
     assert err == f"error: {folder} is a directory; give a file name inside it\n"
     assert not list(folder.iterdir()) and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_a_live_writers_temporaries_survive_a_budget_folder_clean_up(tmp_path):
+    # a budget's outputs clean what killed runs left; a concurrent writer's file is not theirs
+    from bayes_tfcrds.output.files import clean_dead_writers, folder_lock
+
+    live = tmp_path / f".budget.json.{os.getpid()}-0123456789ab.tmp"
+    live.write_text("being written")
+    dead = tmp_path / ".budget.json.999999999-0123456789ab.tmp"
+    dead.write_text("left by a SIGKILL")
+    assert clean_dead_writers(tmp_path) == [dead]
+    assert live.exists() and not dead.exists()
+    with folder_lock(tmp_path / "new"), folder_lock(tmp_path / "new"):  # nested use in one run
+        assert (tmp_path / "new").is_dir()
