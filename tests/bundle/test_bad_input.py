@@ -747,3 +747,17 @@ def test_truth_with_a_hard_link_cycle_is_refused_by_path(tmp_path):
     assert any(v.path == "/truth/a/loop" and "cycle" in v.message for v in info.value.violations), (
         info.value
     )
+
+
+def test_validate_escapes_control_characters_in_the_paths_it_refuses(campaign, tmp_path, capsys):
+    # found by the property test (issue 20): the REFUSED list printed a configuration name with
+    # an ANSI escape raw (the summary of a good file already escaped it)
+    evil = tmp_path / "evil.h5"
+    shutil.copy(campaign, evil)
+    with h5py.File(evil, "a") as f:
+        del f["configs/D2/cmds/nu_hz"]
+        f.move("configs/D2", "configs/\x1b[31mD2\n")
+    assert main_validate(evil) == 1
+    out = capsys.readouterr().out
+    assert "error: /configs/\\x1b[31mD2\\n/cmds/nu_hz: required dataset is missing" in out, out
+    assert all(line.isprintable() for line in out.splitlines()), out

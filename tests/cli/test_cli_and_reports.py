@@ -402,3 +402,27 @@ def test_a_configuration_name_with_dollars_is_drawn_as_text(small_bundle, tmp_pa
     assert main([*argv, "-o", str(out)]) == 0
     assert (out / "s.html").is_file() and (out / "s.pdf").is_file()
     assert "frac{1}" in (out / "numbers.json").read_text()  # the configuration was analysed
+
+
+def test_linefit_json_stays_json_when_a_shape_parameter_is_held_at_its_bound(
+    small_bundle, tmp_path, capsys
+):
+    # found by the property test (issue 20): the correlation row of a parameter held at 0 by
+    # --shape-bounds physical was NaN, written as the non-JSON token NaN
+    out = tmp_path / "line.json"
+    argv = ["linefit", str(small_bundle), "--shape-bounds", "physical", "-o", str(out)]
+    assert main(argv) == 0
+
+    def refuse(token):
+        raise ValueError(f"{token} in {out}")
+
+    result = json.loads(out.read_text(), parse_constant=refuse)
+    held = result["shape_at_bound"]
+    assert held, "this bundle's Gamma2 ends at 0 under physical bounds (the case under test)"
+    names, matrix = result["correlation"]["names"], result["correlation"]["matrix"]
+    for i, name in enumerate(names):
+        if name in held:  # undefined for u = 0: null, in its row and its column
+            assert matrix[i] == [None] * len(names)
+            assert all(row[i] is None for row in matrix)
+        else:
+            assert matrix[i][i] == 1.0
