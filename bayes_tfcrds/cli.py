@@ -402,10 +402,25 @@ class _HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+#: seeds are integers in [0, 2**63), as in study files: numpy's SeedSequence refuses negative
+#: ones (demo and budget stopped in its traceback), and one rule for every command
+SEED_LIMIT = 2**63
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2**63), got {text!r}")
+    return value
+
+
 def _common(sp, seed=0, note=""):
     """Options every command has (``--seed``), and help that shows defaults."""
     sp.formatter_class = _HelpWithDefaults
-    sp.add_argument("--seed", type=int, default=seed, help="random seed" + note)
+    sp.add_argument("--seed", type=_seed, default=seed, help="random seed" + note)
     return sp
 
 

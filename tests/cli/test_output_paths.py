@@ -153,3 +153,26 @@ def test_a_live_writers_temporaries_survive_a_budget_folder_clean_up(tmp_path):
     assert live.exists() and not dead.exists()
     with folder_lock(tmp_path / "new"), folder_lock(tmp_path / "new"):  # nested use in one run
         assert (tmp_path / "new").is_dir()
+
+
+@pytest.mark.parametrize("command", ["simulate", "fit", "budget", "study", "discover", "demo"])
+@pytest.mark.parametrize("seed", ["-1", str(2**63), "1.5"])
+def test_a_seed_outside_the_seed_range_is_refused_as_an_option(tmp_path, capsys, command, seed):
+    # issue 20 (study seed -1): the option had no rule; demo --seed -1 ended in numpy's
+    # traceback, simulate and budget in its "expected non-negative integer", the others took it
+    args = {
+        "simulate": ["simulate"],
+        "fit": ["fit", "c.h5"],
+        "budget": ["budget", "c.h5"],
+        "study": ["study", "s.toml"],
+        "discover": ["discover", "c.h5"],
+        "demo": ["demo"],
+    }[command]
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as info:
+        main([*args, "--seed", seed, "-o", str(out)])
+    assert info.value.code == 2
+    assert f"argument --seed: expected an integer in [0, 2**63), got '{seed}'" in (
+        capsys.readouterr().err
+    )
+    assert not out.exists()
