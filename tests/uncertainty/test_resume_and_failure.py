@@ -125,3 +125,14 @@ def test_a_second_budget_into_a_busy_folder_is_refused_in_one_line(bundles, tmp_
         holder.wait()
     # the holder is gone: the folder is free again
     assert main([*args, "--steps", "30", "--max-steps", "30"]) == 3
+
+
+def test_a_budget_of_one_step_fails_its_gates_instead_of_crashing(bundles, tmp_path, capsys):
+    # found by the CLI property test (issue 20): an IndexError in the burn-in
+    b, _ = bundles
+    path = tmp_path / "d2.h5"
+    save_bundle(b, path)
+    out = tmp_path / "out"
+    args = ["budget", str(path), "--config", "D2", "--quiet", "--profile", "voigt"]
+    assert main([*args, "--steps", "1", "--max-steps", "1", "-o", str(out)]) == 3
+    assert "FAILED: failed" in capsys.readouterr().err
