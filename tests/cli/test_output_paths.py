@@ -93,6 +93,8 @@ def test_missing_folders_of_a_file_output_are_created(tmp_path):
         (["--samples", "0"], "n_samples = 0"),
         (["--samples", "-1"], "n_samples = -1"),
         (["--samples", "100000000"], "n_samples = 100000000"),
+        (["--points", "0"], "n_points = 0"),
+        (["--points", "1"], "n_points = 1"),
         (["--points", "2"], "n_points = 2"),
         (["--effect", "extinction_tail:tau_s=0"], "tau_s = 0.0 is outside"),
         (["--effect", "extinction_tail:tau_s=nan"], "tau_s = nan is outside"),
@@ -127,15 +129,16 @@ def test_discover_refuses_options_that_give_nonsense(tmp_path, capsys, options, 
     assert not out.exists()
 
 
-@pytest.mark.parametrize("command", ["fit", "linefit"])
-def test_fit_and_linefit_into_a_directory_are_refused_before_any_work(tmp_path, capsys, command):
-    # issue 20: -o <directory> raised IsADirectoryError after the fit and left a .tmp behind
+@pytest.mark.parametrize("command", ["fit", "linefit", "simulate"])
+def test_file_commands_into_a_directory_are_refused_before_any_work(tmp_path, capsys, command):
+    # issue 20: -o <directory> raised IsADirectoryError after the work and left a .tmp behind
     bundle = tmp_path / "c.h5"
     assert main(["simulate", "--points", "9", "--samples", "1024", "-o", str(bundle)]) == 0
     capsys.readouterr()
     folder = tmp_path / "results"
     folder.mkdir()
-    assert main([command, str(bundle), "--config", "D2", "-o", str(folder)]) == 2
+    args = ["simulate"] if command == "simulate" else [command, str(bundle), "--config", "D2"]
+    assert main([*args, "-o", str(folder)]) == 2
     err = capsys.readouterr().err
     assert err == f"error: {folder} is a directory; give a file name inside it\n"
     assert not list(folder.iterdir()) and not list(tmp_path.glob(".*tmp*"))
