@@ -121,18 +121,26 @@ def _numeric_places(path):
     return sorted(datasets), sorted(attrs)
 
 
+def _renamed(path: str, current: str) -> str:
+    """``path`` inside the configuration under its current name (a drawn rename comes first)."""
+    head = "configs/D2"
+    return f"configs/{current}{path[len(head) :]}" if path.startswith(head) else path
+
+
 def _edit(f, edit) -> None:
     """Apply one drawn edit to the open bundle ``f``."""
     kind, where, arg = edit
+    (current,) = f["configs"]  # the one configuration, under its latest name
     if kind == "rename":  # a configuration name from the drawn text
-        (current,) = f["configs"]  # the one configuration, under its latest name
         if "/" not in arg and arg not in ("", ".", "..") and arg not in f["configs"]:
             f["configs"].move(current, arg)
         return
     if kind == "attr":
         group, key = where
+        group = _renamed(group, current)
         f[group].attrs[key] = np.asarray(f[group].attrs[key]) * arg
         return
+    where = _renamed(where, current)
     if where not in f:  # an earlier edit removed or renamed it
         return
     data = f[where][()]
