@@ -542,6 +542,26 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     return data
 
 
+def _check_beat_reference(p: str, b12, n: int | None, r: _Reader) -> None:
+    """The beat note must have signal at its lowest frequencies.
+
+    There the chain passes it at full gain, and |H| is normalised to them (fit.beat_note): an
+    amplitude of 0 V there is no measurement (a dead channel), and the H fit of such a file ran
+    without end instead of stopping.
+    """
+    if b12 is None or n is None or b12.shape != (n,):
+        return
+    k = max(3, n // 10)
+    zero = np.flatnonzero(b12[:k] == 0)
+    if zero.size:
+        r.error(
+            _join(p, "b12_v"),
+            f"is 0 V at {zero.size} of the {min(k, n)} lowest frequencies (first at index "
+            f"{int(zero[0])}), where the chain passes the beat note at full gain: no beat note "
+            "was recorded there",
+        )
+
+
 def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
     g = r.child(parent, cp, "transfer_function", "group", required=False)
     if g is None:
@@ -565,6 +585,7 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
                 f"{_num(f_hz[i])}",
             )
     r.same_length(p, "b12_v", b12, n, f"f_hz has {n}")
+    _check_beat_reference(p, b12, n, r)
     r.same_length(p, "b12_u_v", b12_u, n, f"f_hz has {n}")
     for name, level in (("i1_v", i1), ("i2_v", i2)):
         if level is not None and n is not None and level.shape not in ((), (n,)):

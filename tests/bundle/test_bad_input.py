@@ -102,6 +102,13 @@ BROKEN = [
         "must be > 0: 5 of 5",
     ),
     ("zero b12_u_v", lambda f: _scale_row(f, TF + "/b12_u_v", 0.0), TF + "/b12_u_v", "must be > 0"),
+    # found by the CLI property test (issue 20): validated, then the H fit never ended
+    (
+        "b12_v of 0 V at a low frequency",
+        lambda f: _scale_row(f, TF + "/b12_v", 0.0),
+        TF + "/b12_v",
+        "is 0 V at 1 of the 3 lowest frequencies (first at index 1), where the chain passes",
+    ),
     (
         "negative shift_u_hz",
         lambda f: _scale_row(f, CM + "/shift_u_hz", -50.0),
@@ -761,3 +768,17 @@ def test_validate_escapes_control_characters_in_the_paths_it_refuses(campaign, t
     out = capsys.readouterr().out
     assert "error: /configs/\\x1b[31mD2\\n/cmds/nu_hz: required dataset is missing" in out, out
     assert all(line.isprintable() for line in out.splitlines()), out
+
+
+def test_a_beat_note_without_signal_stops_the_h_fit_at_once():
+    # a record built in code (not read from a file) reaches the fit: refused, never a search
+    # from a NaN start that does not end (issue 20, found by the CLI property test)
+    from types import SimpleNamespace
+
+    from bayes_tfcrds.fit.beat_note import fit_beat_note
+
+    dead = SimpleNamespace(f_hz=np.geomspace(1e3, 4e7, 60), h_mag=np.zeros(60), h_mag_u=None)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match="no signal at its lowest frequencies"):
+        fit_beat_note(dead)
+    assert time.perf_counter() - start < 5
