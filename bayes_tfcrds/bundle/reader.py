@@ -569,8 +569,9 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
     p, n0 = _join(cp, "transfer_function"), len(r.errors)
     r.extras(g, p, _TF_ITEMS)
     f_hz = r.array(g, p, "f_hz", rule=_POSITIVE)
-    b12 = r.array(g, p, "b12_v", rule=_NONNEG)
-    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_POSITIVE)  # a weight: 0 is infinite
+    b12 = r.array(g, p, "b12_v", rule=[_NONNEG, _within(0.0, 1e3, "V")])
+    # a weight: 0 is infinite, and 1e-300 V as good (the fit then fails from every start)
+    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_VOLTS)
     i1 = r.array(g, p, "i1_v", ndims=(0, 1), rule=_POSITIVE)
     i2 = r.array(g, p, "i2_v", ndims=(0, 1), rule=_POSITIVE)
     n = None

@@ -102,6 +102,20 @@ BROKEN = [
         "must be > 0: 5 of 5",
     ),
     ("zero b12_u_v", lambda f: _scale_row(f, TF + "/b12_u_v", 0.0), TF + "/b12_u_v", "must be > 0"),
+    # found by the CLI property test (issue 20): validated, then the H fit failed from every
+    # start with a RuntimeError traceback
+    (
+        "b12_u_v 1e-300 V",
+        lambda f: _scale_row(f, TF + "/b12_u_v", 1e-300),
+        TF + "/b12_u_v",
+        "must be in [1e-15, 1000] (V)",
+    ),
+    (
+        "b12_v 1e300 V",
+        lambda f: _scale_row(f, TF + "/b12_v", 1e300),
+        TF + "/b12_v",
+        "must be in [0, 1000] (V)",
+    ),
     # found by the CLI property test (issue 20): validated, then the H fit never ended
     (
         "b12_v of 0 V at a low frequency",
