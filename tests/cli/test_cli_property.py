@@ -13,7 +13,8 @@ Whatever it draws, ``main`` must
 * on success, write finite results: every JSON parses without NaN or Infinity, every number of
   the fit CSV is finite where the fit says "ok";
 * create nothing outside ``-o`` (the file, or the folder and what is inside it), and leave no
-  temporary file behind.
+  temporary file behind;
+* end within two minutes (on a bundle that takes seconds).
 
 The examples are derandomised (CI sees the same ones every run). ``BAYES_TFCRDS_CLI_EXAMPLES``
 raises their number for a longer local search.
@@ -29,6 +30,7 @@ import json
 import math
 import os
 import shutil
+import signal
 import tempfile
 from pathlib import Path
 
@@ -40,7 +42,7 @@ from hypothesis import strategies as st
 
 from bayes_tfcrds.cli import main
 
-EXAMPLES = int(os.environ.get("BAYES_TFCRDS_CLI_EXAMPLES", "40"))
+EXAMPLES = int(os.environ.get("BAYES_TFCRDS_CLI_EXAMPLES", "100"))
 WITH_BUDGET = os.environ.get("BAYES_TFCRDS_CLI_BUDGET") == "1"
 
 #: stderr lines a command may print before its error line (progress, warnings, notes)
@@ -226,16 +228,29 @@ def invocations(draw, datasets, attrs):
 
 
 # ----------------------------------------------------------------------------- the checks
+#: longest one command may take on the small bundle (a few seconds) before it counts as hung
+HUNG_S = 120
+
+
+def _hung(signum, frame):
+    raise TimeoutError(f"the command ran longer than {HUNG_S} s")
+
+
 def _run(argv):
     """(exit status, stdout, stderr, argparse?) of ``main(argv)``; any other exception raises."""
     out, err = io.StringIO(), io.StringIO()
     parse_error = False
+    previous = signal.signal(signal.SIGALRM, _hung)
+    signal.alarm(HUNG_S)  # a search that never ends is a defect too (a 0 V beat note was one)
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
         try:
             code = main(argv)
         except SystemExit as exc:  # argparse refuses a malformed option this way, and only it
             assert exc.code == 2, (exc.code, argv)
             code, parse_error = 2, True
+        finally:
+            signal.alarm(0)
+            signal.signal(signal.SIGALRM, previous)
     assert isinstance(code, int), (code, argv)
     return code, out.getvalue(), err.getvalue(), parse_error
 
