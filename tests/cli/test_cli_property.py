@@ -1,9 +1,10 @@
 """The command line under random options and random damage to its bundle (issue 20, "done when").
 
-Hypothesis draws a command (validate, fit, linefit, simulate; budget with a few sampler steps
-when ``BAYES_TFCRDS_CLI_BUDGET=1``), option values (0, negative, nan, inf, huge numbers, names
-with ``/``, ``..`` and control characters) and edits to a small bundle (a dataset dropped, a
-value scaled by 1e+-300, a NaN, a shape changed, a frequency repeated, a configuration renamed).
+Hypothesis draws a command (validate, fit, linefit, simulate, and budget with at most six
+sampler steps; ``BAYES_TFCRDS_CLI_BUDGET=0`` leaves budget out), option values (0, negative,
+nan, inf, huge numbers, names with ``/``, ``..`` and control characters) and edits to a small
+bundle (a dataset dropped, a value scaled by 1e+-300, a NaN, a shape changed, a frequency
+repeated, a configuration renamed).
 Whatever it draws, ``main`` must
 
 * return an exit status (argparse's ``SystemExit(2)`` for a malformed option is fine) and raise
@@ -43,7 +44,7 @@ from hypothesis import strategies as st
 from bayes_tfcrds.cli import main
 
 EXAMPLES = int(os.environ.get("BAYES_TFCRDS_CLI_EXAMPLES", "100"))
-WITH_BUDGET = os.environ.get("BAYES_TFCRDS_CLI_BUDGET") == "1"
+WITH_BUDGET = os.environ.get("BAYES_TFCRDS_CLI_BUDGET", "1") == "1"
 
 #: stderr lines a command may print before its error line (progress, warnings, notes)
 PROGRESS = ("# ", "H refinement: ", "warning: ", "note: ", "finding: ")
