@@ -497,7 +497,7 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     p, n0 = _join(cp, "ringdowns"), len(r.errors)
     r.extras(g, p, _RD_ITEMS, ("dt_s", "t0_s"))
     signal = r.array(g, p, "signal_v", ndims=(2,))
-    nu = r.array(g, p, "nu_hz", rule=_POSITIVE, precise=True)
+    nu = r.array(g, p, "nu_hz", rule=_OPTICAL, precise=True)
     dt = r.attr(g, p, "dt_s", "float", rule=_SAMPLING)
     t0 = r.attr(g, p, "t0_s", "float")
     n_avg = r.array(g, p, "n_avg", required=False, rule=_AT_LEAST_1, integer=True)
@@ -605,7 +605,7 @@ def _read_cmds(parent, cp: str, r: _Reader) -> CmdsData | None:
         return None
     p, n0 = _join(cp, "cmds"), len(r.errors)
     r.extras(g, p, _CMDS_ITEMS)
-    nu = r.array(g, p, "nu_hz", rule=_POSITIVE, precise=True)
+    nu = r.array(g, p, "nu_hz", rule=_OPTICAL, precise=True)
     shift = r.array(g, p, "shift_hz")
     shift_u = r.array(g, p, "shift_u_hz", rule=_SHIFT_U)
     width = r.array(g, p, "width_hz", required=False, rule=_POSITIVE)

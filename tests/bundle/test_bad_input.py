@@ -102,6 +102,20 @@ BROKEN = [
         "must be > 0: 5 of 5",
     ),
     ("zero b12_u_v", lambda f: _scale_row(f, TF + "/b12_u_v", 0.0), TF + "/b12_u_v", "must be > 0"),
+    # found by the CLI property test (issue 20): validated, and linefit's overlap error printed
+    # the frequency with 30 digits
+    (
+        "CMDS nu_hz 1e30 times an optical frequency",
+        lambda f: _replace(f, CM + "/nu_hz", f[CM + "/nu_hz"][()] * 1e30),
+        CM + "/nu_hz",
+        "must be in [1e+11, 1e+16] (Hz, far infrared to ultraviolet)",
+    ),
+    (
+        "ring-down nu_hz 1e-30 times an optical frequency",
+        lambda f: _replace(f, RD + "/nu_hz", f[RD + "/nu_hz"][()] * 1e-30),
+        RD + "/nu_hz",
+        "must be in [1e+11, 1e+16] (Hz, far infrared to ultraviolet)",
+    ),
     # found by the CLI property test (issue 20): validated, then the H fit failed from every
     # start with a RuntimeError traceback
     (
