@@ -17,13 +17,50 @@ from bayes_tfcrds._version import __version__
 from bayes_tfcrds.output.files import atomic_write_text
 
 
+class Refused(Exception):
+    """Input the command cannot work with; ``main`` prints it as one ``error:`` line."""
+
+    def __init__(self, message: str, code: int = 1):
+        super().__init__(message)
+        self.code = code
+
+
+def _printable(text: str) -> str:
+    """A message with control characters (newlines, ANSI escapes from names) shown escaped.
+
+    Names come from files (configuration names, paths) and may hold anything; escaped, every
+    message stays one line that cannot move the cursor or recolour the terminal.
+    """
+    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
+
+
+def _say(line: str) -> None:
+    """Print one line of progress, warning or error to stderr, control characters escaped."""
+    print(_printable(line), file=sys.stderr)
+
+
+def _fail(message, code: int) -> int:
+    """Report a refusal as the one line ``error: MESSAGE``; returns the exit status."""
+    _say(f"error: {message}")
+    return code
+
+
 def _floats(text: str):
+    """Comma-separated times in s: finite, each given once (nan or a repeat is a typing slip)."""
     try:
-        return [float(v) for v in text.split(",") if v.strip()]
+        values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"expected comma-separated numbers in seconds, got {text!r}"
         ) from None
+    if not values:
+        raise argparse.ArgumentTypeError(f"expected at least one number in seconds, got {text!r}")
+    bad = [v for v in values if not np.isfinite(v)]
+    if bad:
+        raise argparse.ArgumentTypeError(f"expected finite numbers in seconds, got {text!r}")
+    if len(set(values)) != len(values):
+        raise argparse.ArgumentTypeError(f"a value is given more than once in {text!r}")
+    return values
 
 
 def _one_float(text: str):
@@ -36,15 +73,12 @@ def _one_float(text: str):
 def _config(bundle, name):
     if name is None:
         if len(bundle.configs) != 1:
-            raise SystemExit(
-                f"error: the bundle has configurations {list(bundle.configs)}; choose one with "
-                "--config"
+            raise Refused(
+                f"the bundle has configurations {list(bundle.configs)}; choose one with --config"
             )
         return next(iter(bundle.configs.values()))
     if name not in bundle.configs:
-        raise SystemExit(
-            f"error: no configuration {name!r} in the bundle (it has {list(bundle.configs)})"
-        )
+        raise Refused(f"no configuration {name!r} in the bundle (it has {list(bundle.configs)})")
     return bundle.configs[name]
 
 
@@ -55,7 +89,7 @@ def _load(path):
     try:
         return load_bundle(path)
     except BundleError as exc:
-        raise SystemExit(f"error: {exc}") from None
+        raise Refused(exc.one_line()) from None
 
 
 def cmd_validate(args) -> int:
@@ -80,7 +114,7 @@ def cmd_fit(args) -> int:
     try:
         check_t_cuts(config, args.tcut)
         config, noise, beat = account_for_noise_colour(config, args.window)
-        print(f"# {_printable(noise.summary_line())}", file=sys.stderr)
+        _say(f"# {noise.summary_line()}")
         if args.method == "tf-crds":
             cal = calibrate(
                 config,
@@ -90,36 +124,33 @@ def cmd_fit(args) -> int:
                 beat=beat,
             )
             p = cal.params
-            print(
+            _say(
                 f"# H: f_c={p.f_c_hz:.6g} Hz a_r={p.a_r:.6g} f_r={p.f_r_hz:.6g} Hz "
-                f"gamma_r={p.gamma_r:.4g} n_r={p.n_r:.3g} ({args.h})",
-                file=sys.stderr,
+                f"gamma_r={p.gamma_r:.4g} n_r={p.n_r:.3g} ({args.h})"
             )
             if cal.refined is not None:
                 for line in tension_lines(cal.refined):
-                    print(f"# {line}", file=sys.stderr)
+                    _say(f"# {line}")
         fits = fit_config(
             config, args.tcut, method=args.method, window=args.window, calibration=cal
         )
     except (AnalysisError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return _fail(exc, 1)
     atomic_write_text(Path(args.output), fits.to_csv())
     statuses = [row[-1] for row in fits.rows()]
     n_unconv = statuses.count("not-converged")
     if n_unconv:
         tried = len(statuses) - statuses.count("clipped") - statuses.count("saturated")
-        print(
+        _say(
             f"{'FAILED' if n_unconv == tried else 'warning'}: {n_unconv} of {tried} decay-time "
-            "fits did not converge (status not-converged in the CSV)",
-            file=sys.stderr,
+            "fits did not converge (status not-converged in the CSV)"
         )
         if n_unconv == tried:
             return 3
     n_clip = int(fits.clipped.sum())
     n_sat = int(np.sum(config.ringdowns.saturated))
     n_short = sum(row[-1] == "record-short" for row in fits.rows())
-    print(
+    _say(
         f"wrote {args.output}: {fits.tau_s.size} fits "
         f"({args.method}{', ' + args.window if args.method == 'tf-crds' else ''})"
         + (
@@ -134,8 +165,7 @@ def cmd_fit(args) -> int:
             "(status record-short)"
             if n_short
             else ""
-        ),
-        file=sys.stderr,
+        )
     )
     return 0
 
@@ -149,6 +179,8 @@ def cmd_simulate(args) -> int:
     try:
         for text in args.effect or []:
             name, params = parse_effect(text)
+            if name in effects:  # a second --effect NAME would silently replace the first
+                raise ValueError(f"--effect {name} given more than once; give its keys in one")
             effects[name] = params
         presets = args.preset or ["letter-D2"]
         repeated = sorted({p for p in presets if presets.count(p) > 1})
@@ -160,14 +192,12 @@ def cmd_simulate(args) -> int:
         rng = np.random.default_rng(args.seed)
         bundle, truth = simulate_campaign(presets, rng, campaign, effects)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(exc, 2)
     save_bundle(bundle, args.output, truth=truth)
     m = next(iter(bundle.configs.values())).ringdowns.n_points
-    print(
+    _say(
         f"wrote {args.output}: configurations {list(bundle.configs)}, {m} cavity modes x "
-        f"{campaign.n_samples} samples, seed {args.seed}",
-        file=sys.stderr,
+        f"{campaign.n_samples} samples, seed {args.seed}"
     )
     return 0
 
@@ -190,20 +220,18 @@ def cmd_linefit(args) -> int:
             physical_bounds=args.shape_bounds == "physical",
         )
     except (LineFitError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 1
+        return _fail(exc, 1)
     atomic_write_text(Path(args.output), json.dumps(result.to_dict(), indent=2) + "\n")
     for line in _linefit_warnings(result, args.tcut[0]):
-        print(line, file=sys.stderr)
+        _say(line)
     la, ra, q = result.line_area, result.reference_area, result.ratio
-    print(
+    _say(
         f"A = {la.value:.6e} +/- {la.u:.2e} {la.unit}; "
         + (
             "no CMDS reference in this configuration"
             if ra is None
             else f"A_ref = {ra.value:.6e} +/- {ra.u:.2e}; A/A_ref = {q.value:.5f} +/- {q.u:.5f}"
-        ),
-        file=sys.stderr,
+        )
     )
     return 0
 
@@ -246,14 +274,10 @@ def cmd_demo(args) -> int:
     """Simulate a letter-like campaign (D1-D4) and analyse it: CRDS vs TF-CRDS against CMDS."""
     from bayes_tfcrds.studies.demo import run_demo
 
-    result = run_demo(
-        args.output, seed=args.seed, quick=args.quick, log=lambda line: print(line, file=sys.stderr)
-    )
+    result = run_demo(args.output, seed=args.seed, quick=args.quick, log=_say)
     print("\n".join(result.summary_lines()))
-    print(
-        f"\nwrote {result.bundle_path}, {result.results_path}, {result.summary_path}",
-        file=sys.stderr,
-    )
+    print(file=sys.stderr)
+    _say(f"wrote {result.bundle_path}, {result.results_path}, {result.summary_path}")
     return 0
 
 
@@ -277,8 +301,7 @@ def cmd_budget(args) -> int:
         try:
             opts = opts.with_steps(args.steps, args.max_steps)
         except ValueError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
+            return _fail(exc, 2)
     try:
         try:
             res = run_budget(
@@ -290,51 +313,45 @@ def cmd_budget(args) -> int:
                 progress=not args.quiet,
             )
         except (LineFitError, AnalysisError, ValueError) as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 1
+            return _fail(exc, 1)
         write_outputs(res, args.output, seed=args.seed)
     except KeyboardInterrupt:
-        print(
-            "\ninterrupted: the chains sampled so far are kept in "
+        print(file=sys.stderr)
+        _say(
+            "interrupted: the chains sampled so far are kept in "
             f"{Path(args.output) / 'chains_*.h5'}; run the same command again to resume (same "
-            "seed, same result)",
-            file=sys.stderr,
+            "seed, same result)"
         )
         return 130
     if not res.passed:
         print(failed_banner(res))
     noise = res.summary.get("noise")
     if noise and not noise["white"]:
-        print(
+        _say(
             f"warning: the ring-down noise is coloured (kappa = {noise['kappa_median']:.3g}): "
             "u(tau) and every ring-down likelihood use noise_v sqrt(kappa) (budget.md, "
-            "'Ring-down noise')",
-            file=sys.stderr,
+            "'Ring-down noise')"
         )
     print(res.budget_a.to_markdown())
     if res.refined is not None:
         for line in tension_lines(res.refined):
-            print(f"H refinement: {line}", file=sys.stderr)
+            _say(f"H refinement: {line}")
     form = (res.summary.get("transfer_function") or {}).get("model_form")
     if form and form["asks_for_free_order"]:
-        print(
+        _say(
             f"finding: the beat note asks for a fractional order n_r = {form['n_r_free_fit']:.3f} "
             f"(BIC weight {form['weight_n_r_free']:.3g}); the budget keeps n_r = 2 and carries the "
-            "difference in A as the 'H model form' row",
-            file=sys.stderr,
+            "difference in A as the 'H model form' row"
         )
     if not res.passed:
-        print(
-            f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})",
-            file=sys.stderr,
-        )
+        _say(f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})")
         return 3
     a, q, s = res.line_area, res.ratio, res.intensity
     t_ref = res.summary["intensity"]["t_ref_k"]
-    print(
-        f"\nA = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = "
-        f"{res.en:.2f};  S({t_ref:g} K) = {s.value:.5e} +/- {s.u:.2e} cm/molecule",
-        file=sys.stderr,
+    print(file=sys.stderr)
+    _say(
+        f"A = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = "
+        f"{res.en:.2f};  S({t_ref:g} K) = {s.value:.5e} +/- {s.u:.2e} cm/molecule"
     )
     return 0
 
@@ -356,9 +373,8 @@ def cmd_study(args) -> int:
                 args.file, args.output, progress=not args.quiet, seed=args.seed
             )
     except StudyError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(f"wrote {html_path} and {pdf_path}", file=sys.stderr)
+        return _fail(exc, 2)
+    _say(f"wrote {html_path} and {pdf_path}")
     return 0
 
 
@@ -384,16 +400,14 @@ def cmd_discover(args) -> int:
             start,
             t_cuts=args.tcut or DISCOVERY_T_CUTS,
             threshold=args.threshold,
-            progress=None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True)),
+            progress=None if args.quiet else _say,
         )
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        return _fail(exc, 2)
     json_path, html_path = write_report(result, args.output, seed=args.seed, inputs=[args.file])
-    print(
+    _say(
         f"effects added: {', '.join(result.effects_added) or 'none'} ({result.seconds:.1f} s); "
-        f"wrote {json_path} and {html_path}",
-        file=sys.stderr,
+        f"wrote {json_path} and {html_path}"
     )
     return 0
 
@@ -412,10 +426,25 @@ class _HelpWithDefaults(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
+#: seeds are integers in [0, 2**63), as in study files: numpy's SeedSequence refuses negative
+#: ones (demo and budget stopped in its traceback), and one rule for every command
+SEED_LIMIT = 2**63
+
+
+def _seed(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value < SEED_LIMIT:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2**63), got {text!r}")
+    return value
+
+
 def _common(sp, seed=0, note=""):
     """Options every command has (``--seed``), and help that shows defaults."""
     sp.formatter_class = _HelpWithDefaults
-    sp.add_argument("--seed", type=int, default=seed, help="random seed" + note)
+    sp.add_argument("--seed", type=_seed, default=seed, help="random seed" + note)
     return sp
 
 
@@ -668,15 +697,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv=None) -> int:
-    from bayes_tfcrds.output.files import OutputPathError
+    from bayes_tfcrds.output.files import FolderBusyError, OutputPathError
 
     args = build_parser().parse_args(argv)
     try:
         _check_output(args)
         return int(args.func(args) or 0)
     except OutputPathError as exc:  # the output rule (output.files.check_replaceable), any command
-        print(f"error: {_printable(str(exc))}", file=sys.stderr)
-        return 2
+        return _fail(exc, 2)
+    except FolderBusyError as exc:  # another run holds -o (output.files.folder_lock)
+        return _fail(exc, 1)
+    except Refused as exc:
+        return _fail(exc, exc.code)
 
 
 _FOLDER_COMMANDS = ("cmd_budget", "cmd_study", "cmd_discover", "cmd_demo")
@@ -695,11 +727,6 @@ def _check_output(args) -> None:
             raise OutputPathError(f"{path} exists and is not a folder; -o names the output folder")
         return
     check_replaceable(path)
-
-
-def _printable(text: str) -> str:
-    """A message with control characters (newlines, ANSI escapes from names) shown escaped."""
-    return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
 if __name__ == "__main__":

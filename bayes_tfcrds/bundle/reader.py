@@ -497,7 +497,7 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     p, n0 = _join(cp, "ringdowns"), len(r.errors)
     r.extras(g, p, _RD_ITEMS, ("dt_s", "t0_s"))
     signal = r.array(g, p, "signal_v", ndims=(2,))
-    nu = r.array(g, p, "nu_hz", rule=_POSITIVE, precise=True)
+    nu = r.array(g, p, "nu_hz", rule=_OPTICAL, precise=True)
     dt = r.attr(g, p, "dt_s", "float", rule=_SAMPLING)
     t0 = r.attr(g, p, "t0_s", "float")
     n_avg = r.array(g, p, "n_avg", required=False, rule=_AT_LEAST_1, integer=True)
@@ -542,6 +542,26 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
     return data
 
 
+def _check_beat_reference(p: str, b12, n: int | None, r: _Reader) -> None:
+    """The beat note must have signal at its lowest frequencies.
+
+    There the chain passes it at full gain, and |H| is normalised to them (fit.beat_note): an
+    amplitude of 0 V there is no measurement (a dead channel), and the H fit of such a file ran
+    without end instead of stopping.
+    """
+    if b12 is None or n is None or b12.shape != (n,):
+        return
+    k = max(3, n // 10)
+    zero = np.flatnonzero(b12[:k] == 0)
+    if zero.size:
+        r.error(
+            _join(p, "b12_v"),
+            f"is 0 V at {zero.size} of the {min(k, n)} lowest frequencies (first at index "
+            f"{int(zero[0])}), where the chain passes the beat note at full gain: no beat note "
+            "was recorded there",
+        )
+
+
 def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
     g = r.child(parent, cp, "transfer_function", "group", required=False)
     if g is None:
@@ -549,8 +569,9 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
     p, n0 = _join(cp, "transfer_function"), len(r.errors)
     r.extras(g, p, _TF_ITEMS)
     f_hz = r.array(g, p, "f_hz", rule=_POSITIVE)
-    b12 = r.array(g, p, "b12_v", rule=_NONNEG)
-    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_POSITIVE)  # a weight: 0 is infinite
+    b12 = r.array(g, p, "b12_v", rule=[_NONNEG, _within(0.0, 1e3, "V")])
+    # a weight: 0 is infinite, and 1e-300 V as good (the fit then fails from every start)
+    b12_u = r.array(g, p, "b12_u_v", required=False, rule=_VOLTS)
     i1 = r.array(g, p, "i1_v", ndims=(0, 1), rule=_POSITIVE)
     i2 = r.array(g, p, "i2_v", ndims=(0, 1), rule=_POSITIVE)
     n = None
@@ -565,6 +586,7 @@ def _read_tf(parent, cp: str, r: _Reader) -> TransferFunctionData | None:
                 f"{_num(f_hz[i])}",
             )
     r.same_length(p, "b12_v", b12, n, f"f_hz has {n}")
+    _check_beat_reference(p, b12, n, r)
     r.same_length(p, "b12_u_v", b12_u, n, f"f_hz has {n}")
     for name, level in (("i1_v", i1), ("i2_v", i2)):
         if level is not None and n is not None and level.shape not in ((), (n,)):
@@ -583,7 +605,7 @@ def _read_cmds(parent, cp: str, r: _Reader) -> CmdsData | None:
         return None
     p, n0 = _join(cp, "cmds"), len(r.errors)
     r.extras(g, p, _CMDS_ITEMS)
-    nu = r.array(g, p, "nu_hz", rule=_POSITIVE, precise=True)
+    nu = r.array(g, p, "nu_hz", rule=_OPTICAL, precise=True)
     shift = r.array(g, p, "shift_hz")
     shift_u = r.array(g, p, "shift_u_hz", rule=_SHIFT_U)
     width = r.array(g, p, "width_hz", required=False, rule=_POSITIVE)

@@ -439,3 +439,19 @@ class BundleError(ValueError):
         ]
         lines += [f"{self.file}: {v}" for v in self.violations]
         super().__init__("\n".join(lines))
+
+    def one_line(self, shown: int = 3) -> str:
+        """The refusal on one line, for an error line: the file and its first ``shown`` problems.
+
+        The full list stays in the exception (and ``bayes-tfcrds validate FILE`` prints it).
+        """
+        more = len(self.violations) - shown
+        return (
+            f"{self.file}: not a valid bundle: "
+            + "; ".join(str(v) for v in self.violations[:shown])
+            + (
+                f"; and {more} more (bayes-tfcrds validate {self.file} lists them)"
+                if more > 0
+                else ""
+            )
+        )

@@ -97,16 +97,17 @@ def main_validate(path) -> int:
     """
     name = os.fspath(path)
     bundle, errors, warnings = validate_file(name)
+    shown = _printable(name)  # paths inside the file and the file's name: escaped like the summary
     if errors:
-        print(f"{name}: REFUSED, {len(errors)} problem(s):")
+        print(f"{shown}: REFUSED, {len(errors)} problem(s):")
         for v in errors:
-            print(f"  error: {v}")
+            print(f"  error: {_printable(str(v))}")
     else:
         print(summarize(bundle))
     if warnings:
         print(f"{len(warnings)} warning(s):")
         for v in warnings:
-            print(f"  warning: {v}")
+            print(f"  warning: {_printable(str(v))}")
     if not errors:
-        print(f"{name}: OK")
+        print(f"{shown}: OK")
     return 1 if errors else 0

@@ -76,7 +76,15 @@ def _default_starts(f_hz, h_mag, variant):
     A fast first-order roll-off with a slow resonant correction, or (as in the letter's chains) a
     slow first-order tail carrying 1/(1 + A_r) of the gain beside a fast resonant main path.
     """
-    hn = h_mag / np.median(h_mag[: max(3, len(h_mag) // 10)])
+    reference = np.median(h_mag[: max(3, len(h_mag) // 10)])
+    if not (np.isfinite(reference) and reference > 0):
+        # the bundle reader refuses such files; a record built in code is refused here, since
+        # the search below never ends on a NaN start
+        raise ValueError(
+            f"the beat note has no signal at its lowest frequencies (median |H| {reference:g}); "
+            "|H| cannot be normalised"
+        )
+    hn = h_mag / reference
     below = np.nonzero(hn < 1 / np.sqrt(2))[0]
     f3 = f_hz[below[0]] if below.size else f_hz[-1]
     starts = []

@@ -58,7 +58,13 @@ def beat_note_fit(
             f"configuration {config.name!r} has no /configs/{config.name}/transfer_function "
             "group: TF-CRDS needs the beat-note measurement of the chain"
         )
-    best = fit_beat_note(config.transfer_function, variant=variant, free=free)
+    try:
+        best = fit_beat_note(config.transfer_function, variant=variant, free=free)
+    except RuntimeError as exc:  # no start converged: the measurement is not an Eq. 2 |H|
+        raise AnalysisError(
+            f"/configs/{config.name}/transfer_function: {exc}; check b12_v and b12_u_v "
+            "(bayes-tfcrds validate shows the beat note)"
+        ) from None
     a = best.params.a_r
     if "a_r" not in free or config.ringdowns is None or abs(1 + 2 * a) < 1e-3:
         return best

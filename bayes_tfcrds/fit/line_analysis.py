@@ -218,7 +218,11 @@ class LineAnalysis:
             },
             "correlation": {
                 "names": list(lf.names),
-                "matrix": np.round(lf.correlation, 6).tolist(),
+                # null where undefined: a parameter held at a bound has u = 0 (NaN is not JSON)
+                "matrix": [
+                    [float(r) if np.isfinite(r) else None for r in row]
+                    for row in np.round(lf.correlation, 6)
+                ],
             },
             "chi2_red": self.chi2_red,
             "unphysical_shape": self.unphysical_shape,

@@ -120,10 +120,13 @@ def integrated_time(x) -> float:
 
     emcee's estimator (FFT autocovariance, Sokal window with c = 5) but centred on the
     ensemble mean and averaged over walkers before normalisation (see module docstring).
-    Returns ``inf`` for a constant series: it carries no information about the quantity.
+    Returns ``inf`` for a constant series, and for one of fewer than two steps (what a burn-in
+    leaves of a one-step run): neither carries information about the quantity.
     """
     x = np.asarray(x, dtype=float)
     n = x.shape[0]
+    if n < 2:
+        return math.inf
     y = x - x.mean()
     nfft = 1 << max(0, (2 * n - 1).bit_length())
     f = np.fft.rfft(y, n=nfft, axis=0)

@@ -49,6 +49,70 @@ def clean_stale_temporaries(target: Path) -> list:
     return removed
 
 
+def clean_dead_writers(folder: Path) -> list:
+    """Remove every temporary in ``folder`` whose writer was killed; returns their paths.
+
+    For a folder of many results (a budget's), where the names a killed run was writing are not
+    all known; a live writer's temporary (another run, this process) is never touched.
+    """
+    removed = []
+    for tmp in Path(folder).glob(TEMP_GLOB):
+        m = _TEMP_RE.fullmatch(tmp.name)
+        if m is None or _alive(int(m["pid"])):
+            continue
+        tmp.unlink(missing_ok=True)
+        removed.append(tmp)
+    return removed
+
+
+class FolderBusyError(OSError):
+    """Another run holds the output folder (see :func:`folder_lock`)."""
+
+
+@contextmanager
+def folder_lock(folder) -> Iterator[Path]:
+    """Hold ``folder`` (created if missing) for this run alone until the block ends.
+
+    A budget resumes the chains it finds in its folder; a second budget there at the same time
+    would interleave its commits with the first's (or stop in HDF5's BlockingIOError). The lock
+    is an advisory ``flock`` on the folder itself: no file is added, and the kernel releases it
+    when the process ends, however it ends. Raises :class:`FolderBusyError` at once if another
+    process holds it; nested use in one process is allowed.
+    """
+    import fcntl
+
+    path = Path(os.path.abspath(os.fspath(folder)))
+    path.mkdir(parents=True, exist_ok=True)
+    key = os.path.realpath(path)
+    if key in _HELD:
+        _HELD[key] += 1
+        try:
+            yield path
+        finally:
+            _HELD[key] -= 1
+        return
+    fd = os.open(path, os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            raise FolderBusyError(
+                f"{path} is in use by another run writing there; wait for it to end or give "
+                "another output folder"
+            ) from None
+        _HELD[key] = 1
+        try:
+            yield path
+        finally:
+            del _HELD[key]
+    finally:
+        os.close(fd)  # releases the lock
+
+
+#: folders this process holds with folder_lock (real path -> nesting depth)
+_HELD: dict = {}
+
+
 def _alive(pid: int) -> bool:
     if pid == os.getpid():
         return True

@@ -15,3 +15,13 @@ def pyplot():
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def literal(text: str) -> str:
+    r"""``text`` shown as it is in a matplotlib label or title, never read as mathtext.
+
+    Names in figures come from files (configuration names); matplotlib parses text between two
+    ``$`` as mathtext, so a configuration named ``$\frac{1}$`` stopped a study with a parse error
+    after all its work. An escaped ``\$`` is drawn as a dollar sign.
+    """
+    return str(text).replace("$", r"\$")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.output.plotting import literal, pyplot
 from bayes_tfcrds.studies.common import parallel_map
 
 
@@ -142,7 +142,7 @@ def _comparison_figure(plt, rep, ok: list) -> None:
     x = np.arange(len(ok))
     ax1.errorbar(x, [s["ratio"]["value"] for _, s in ok], [s["ratio"]["u"] for _, s in ok], fmt="o")
     ax1.axhline(1, color="0.5")
-    ax1.set_xticks(x, [n for n, _ in ok])
+    ax1.set_xticks(x, [literal(n) for n, _ in ok])
     ax1.set_ylabel("A/A_ref (TF-CRDS)")
     svals = [s["intensity"]["value"] for _, s in ok]
     ax2.errorbar(x, svals, [s["intensity"]["u"] for _, s in ok], fmt="o")
@@ -153,7 +153,7 @@ def _comparison_figure(plt, rep, ok: list) -> None:
         color="0.85",
         label="8.0603(70)e-25 (Cygan et al. 2025)",
     )
-    ax2.set_xticks(x, [n for n, _ in ok])
+    ax2.set_xticks(x, [literal(n) for n, _ in ok])
     ax2.set_ylabel("S(296 K) (cm/molecule)")
     ax2.legend(fontsize=7)
     fig.tight_layout()

@@ -7,17 +7,47 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.studies.spec import Study
+from bayes_tfcrds.studies.spec import Study, StudyError
+
+#: study kinds that compare every configuration with its CMDS reference (A/A_ref); a simulated
+#: campaign always has one, a measured bundle may not
+NEEDS_CMDS = ("tcut", "window_history", "budgets")
 
 
-def campaign_of(study: Study, outdir: Path):
-    """Simulate the study's campaign into OUTDIR/campaign.h5 (or load the named bundle)."""
+def load_study_bundle(study: Study):
+    """The measurement bundle a study names, refused (StudyError) if the study cannot use it.
+
+    Called before the report folder is made, so a missing, damaged or unsuitable bundle costs
+    nothing and leaves nothing behind; the error names the study file's key and the bundle.
+    """
+    from bayes_tfcrds.bundle.reader import load_bundle
+    from bayes_tfcrds.bundle.records import BundleError
+
+    try:
+        bundle = load_bundle(study.bundle)
+    except BundleError as exc:
+        raise StudyError(f"{study.path}: campaign.bundle: {exc.one_line()}") from None
+    missing = [name for name, cfg in bundle.configs.items() if cfg.cmds is None]
+    if study.kind in NEEDS_CMDS and missing:
+        raise StudyError(
+            f"{study.path}: a {study.kind} study compares each configuration with its CMDS "
+            f"reference, and campaign.bundle {study.bundle} has no /cmds in {missing}"
+        )
+    return bundle
+
+
+def campaign_of(study: Study, outdir: Path, bundle=None):
+    """Simulate the study's campaign into OUTDIR/campaign.h5 (or load the named bundle).
+
+    ``bundle`` is the named bundle when the caller has loaded it already
+    (:func:`load_study_bundle`).
+    """
     from bayes_tfcrds.bundle.reader import load_bundle, load_truth
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.simulate.campaign import Campaign, parse_effect, simulate_campaign
 
     if study.bundle is not None:
-        return load_bundle(study.bundle), None, Path(study.bundle)
+        return bundle or load_study_bundle(study), None, Path(study.bundle)
     effects = dict(parse_effect(e) for e in study.effects)
     camp = replace(Campaign(), n_points=study.points, n_samples=study.samples, n_avg=study.averages)
     bundle, truth = simulate_campaign(

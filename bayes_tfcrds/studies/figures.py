@@ -9,7 +9,7 @@ from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import analyse_line, doppler_of
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import crds_spectrum
-from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.output.plotting import literal, pyplot
 from bayes_tfcrds.physics.transfer_function import transfer_function
 
 
@@ -63,7 +63,7 @@ def _figure_transfer_function(plt, rep, name, cfg, cal, tf, extremes, tc) -> Non
     ax.set_xlim(f[0], f[-1])
     ax.legend(fontsize=7, loc="lower left")
     ax2.legend(fontsize=7, loc="center left")
-    ax.set_title(f"{name}: detection transfer function (letter Fig. 2a)")
+    ax.set_title(f"{literal(name)}: detection transfer function (letter Fig. 2a)")
     rep.add_figure(
         fig,
         f"{name}: measured |H| (dots), Eq. 2 fitted to it (black), refined by the multi-ring-down "
@@ -114,7 +114,9 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
         a.legend(fontsize=7, loc="upper right")
     axes[0].set_xlim(tc * 1e6, min(t[-1], 8 * tf.tau_s[i_long, 0]) * 1e6)
     axes[-1].set_xlabel("time after extinction (us)")
-    axes[0].set_title(f"{name}: ring-downs truncated at t_cut = {tc * 1e6:g} us (letter Fig. 2b)")
+    axes[0].set_title(
+        f"{literal(name)}: ring-downs truncated at t_cut = {tc * 1e6:g} us (letter Fig. 2b)"
+    )
     rep.add_figure(
         fig,
         f"{name}: ring-downs with the longest and shortest decay times, and the residuals of CRDS "
@@ -166,7 +168,7 @@ def _figure_spectra(plt, rep, name, study, bundle, crds, tf, gd, tc):
     axes[3].plot((tf.nu_hz - bundle.sample.nu0_hz) / 1e9, rel, ".", color="tab:purple")
     axes[3].set_ylabel("(tau_TF - tau)/tau (%)")
     axes[3].set_xlabel("detuning (GHz)")
-    axes[0].set_title(f"{name}: spectra at t_cut = {tc * 1e6:g} us (letter Fig. 3)")
+    axes[0].set_title(f"{literal(name)}: spectra at t_cut = {tc * 1e6:g} us (letter Fig. 3)")
     rep.add_figure(
         fig,
         f"{name}: CRDS and TF-CRDS spectra with {study.profile} fits, normalised residuals, and "
@@ -259,7 +261,7 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
                 np.array(study.t_cuts_s) * 1e6,
                 100 * np.array(vals),
                 mk + ("--" if window == "letter" else "-"),
-                label=f"{name} {window}",
+                label=f"{literal(name)} {window}",
             )
         worst = max(
             abs(r["bias"])

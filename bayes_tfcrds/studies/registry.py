@@ -7,7 +7,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from bayes_tfcrds.output.files import atomic_write_text
-from bayes_tfcrds.studies.common import campaign_of
+from bayes_tfcrds.studies.common import campaign_of, load_study_bundle
 from bayes_tfcrds.studies.spec import KINDS, load_study
 
 
@@ -48,6 +48,8 @@ def run_study(path, outdir, progress: bool = False, pool=None, seed: int | None 
     study = load_study(path)
     if seed is not None:
         study = replace(study, seed=int(seed))
+    # a named bundle is checked before the report folder exists (nothing is left on a refusal)
+    given = load_study_bundle(study) if study.bundle is not None else None
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     rep = Report(title=study.title)
@@ -65,7 +67,7 @@ def run_study(path, outdir, progress: bool = False, pool=None, seed: int | None 
             study_text=study.text,
         )
     else:
-        bundle, truth, bundle_path = campaign_of(study, out)
+        bundle, truth, bundle_path = campaign_of(study, out, given)
         numbers = runner(study, bundle, truth, rep, out, progress=progress, pool=pool)
         rep.provenance = provenance(
             seeds={"study": study.seed},

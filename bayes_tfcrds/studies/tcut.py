@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.output.plotting import literal, pyplot
 from bayes_tfcrds.studies.common import parallel_map
 
 LETTER_BIAS = {
@@ -81,9 +81,11 @@ def _tcut_figure(plt, rep, study, rows, names, band) -> tuple[dict, list]:
             t = np.array([r["t_cut_s"] for r in cfg_rows[m]]) * 1e6
             y = np.array([r["ratio"] for r in cfg_rows[m]])
             u = np.array([r["ratio_u"] for r in cfg_rows[m]])
-            ax_all.errorbar(t, y, u, fmt=mk, color=colors[n], ms=6, label=f"{n} {m.upper()}")
+            ax_all.errorbar(
+                t, y, u, fmt=mk, color=colors[n], ms=6, label=f"{literal(n)} {m.upper()}"
+            )
             if m == "tf-crds":
-                ax_top.errorbar(t, y, u, fmt=mk, color=colors[n], ms=5, label=f"{n}")
+                ax_top.errorbar(t, y, u, fmt=mk, color=colors[n], ms=5, label=literal(n))
             entry[m] = float(np.mean(np.abs(y - 1)))
         if "crds" in entry and "tf-crds" in entry:
             entry["factor"] = entry["crds"] / entry["tf-crds"]

@@ -53,7 +53,7 @@ from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_
 from bayes_tfcrds.fit.refine import HPrior
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
-from bayes_tfcrds.output.files import atomic_write_text
+from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.uncertainty.posterior_steps import (
     IS_ESS_MIN,
@@ -309,9 +309,7 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     config, noise, beat = account_for_noise_colour(config, options.window)
     streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
     backend = None
-    if outdir is not None:
-        Path(outdir).mkdir(parents=True, exist_ok=True)
-        claim_chains(outdir, run_fingerprint(bundle, config, options))
+    if outdir is not None:  # made and claimed by run_budget, under the folder's lock
         backend = str(Path(outdir) / "chains.h5")
     return _Inputs(
         config,
@@ -1009,11 +1007,22 @@ def run_budget(
     """
     rng = np.random.default_rng(0) if rng is None else rng
     inp = _inputs(bundle, config, options, rng, outdir, progress)
+    if outdir is None:
+        return _budget(inp)
+    # one run at a time resumes the chains of a folder (a second one is refused, FolderBusyError)
+    with folder_lock(outdir):
+        claim_chains(outdir, run_fingerprint(bundle, config, options))
+        return _budget(inp)
+
+
+def _budget(inp: _Inputs) -> BudgetResult:
+    """Steps 1-10 of :func:`run_budget` on checked inputs (the chain folder claimed)."""
+    options, config = inp.options, inp.config
     runs = {}
     h_star = h_draws = refined = h_parts = beat = None
     if options.method == "tf-crds":  # 1. H
         beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
-            inp.config, options, inp.streams["h"], inp.chain_file("h"), progress, inp.beat
+            config, options, inp.streams["h"], inp.chain_file("h"), inp.progress, inp.beat
         )
         if h_run is not None:
             runs["h"] = h_run

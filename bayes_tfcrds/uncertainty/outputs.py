@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from bayes_tfcrds.output.files import TEMP_GLOB, atomic_path, atomic_write_text
+from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.uncertainty.line_budget import BudgetResult
 
@@ -21,9 +21,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
 
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
-    # temporary files left by an earlier run that was killed while writing (names as below)
-    for stale in out.glob(TEMP_GLOB):
-        stale.unlink(missing_ok=True)
+    # temporary files left by an earlier run that was killed while writing (a live run's stay)
+    clean_dead_writers(out)
     written = []
     summary = dict(result.summary)
     if seed is not None:

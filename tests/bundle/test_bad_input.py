@@ -102,6 +102,41 @@ BROKEN = [
         "must be > 0: 5 of 5",
     ),
     ("zero b12_u_v", lambda f: _scale_row(f, TF + "/b12_u_v", 0.0), TF + "/b12_u_v", "must be > 0"),
+    # found by the CLI property test (issue 20): validated, and linefit's overlap error printed
+    # the frequency with 30 digits
+    (
+        "CMDS nu_hz 1e30 times an optical frequency",
+        lambda f: _replace(f, CM + "/nu_hz", f[CM + "/nu_hz"][()] * 1e30),
+        CM + "/nu_hz",
+        "must be in [1e+11, 1e+16] (Hz, far infrared to ultraviolet)",
+    ),
+    (
+        "ring-down nu_hz 1e-30 times an optical frequency",
+        lambda f: _replace(f, RD + "/nu_hz", f[RD + "/nu_hz"][()] * 1e-30),
+        RD + "/nu_hz",
+        "must be in [1e+11, 1e+16] (Hz, far infrared to ultraviolet)",
+    ),
+    # found by the CLI property test (issue 20): validated, then the H fit failed from every
+    # start with a RuntimeError traceback
+    (
+        "b12_u_v 1e-300 V",
+        lambda f: _scale_row(f, TF + "/b12_u_v", 1e-300),
+        TF + "/b12_u_v",
+        "must be in [1e-15, 1000] (V)",
+    ),
+    (
+        "b12_v 1e300 V",
+        lambda f: _scale_row(f, TF + "/b12_v", 1e300),
+        TF + "/b12_v",
+        "must be in [0, 1000] (V)",
+    ),
+    # found by the CLI property test (issue 20): validated, then the H fit never ended
+    (
+        "b12_v of 0 V at a low frequency",
+        lambda f: _scale_row(f, TF + "/b12_v", 0.0),
+        TF + "/b12_v",
+        "is 0 V at 1 of the 3 lowest frequencies (first at index 1), where the chain passes",
+    ),
     (
         "negative shift_u_hz",
         lambda f: _scale_row(f, CM + "/shift_u_hz", -50.0),
@@ -267,7 +302,7 @@ def test_truncated_files_are_refused(good_bundle_path, capsys, cut):
     assert "Traceback" not in capsys.readouterr().out
 
 
-def test_truncated_file_is_refused_by_every_command(good_bundle_path, tmp_path):
+def test_truncated_file_is_refused_by_every_command(good_bundle_path, tmp_path, capsys):
     _truncate_to(0.5)(good_bundle_path)
     out = tmp_path / "out"
     for argv in (
@@ -275,8 +310,10 @@ def test_truncated_file_is_refused_by_every_command(good_bundle_path, tmp_path):
         ["linefit", str(good_bundle_path), "-o", str(out / "x.json")],
         ["budget", str(good_bundle_path), "-o", str(out / "b")],
     ):
-        with pytest.raises(SystemExit, match="/: truncated or corrupt HDF5 file"):
-            main(argv)
+        assert main(argv) == 1
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and err.count("\n") == 1, err
+        assert "not a valid bundle: /: truncated or corrupt HDF5 file" in err
     assert not out.exists()
 
 
@@ -476,6 +513,52 @@ def test_t_cut_that_is_not_a_number_is_refused(campaign, tmp_path, capsys):
     with pytest.raises(SystemExit):
         main(["fit", str(campaign), "--tcut", "4us", "-o", str(tmp_path / "x.csv")])
     assert "expected comma-separated numbers in seconds, got '4us'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(
+    "command, tcut, phrase",
+    [
+        ("fit", ",", "expected at least one number in seconds, got ','"),
+        ("discover", ",", "expected at least one number in seconds, got ','"),
+        ("fit", "nan", "expected finite numbers in seconds, got 'nan'"),
+        ("fit", "4e-6,inf", "expected finite numbers in seconds, got '4e-6,inf'"),
+        ("linefit", "nan", "expected finite numbers in seconds, got 'nan'"),
+        ("fit", "4e-6,4e-6", "a value is given more than once in '4e-6,4e-6'"),
+    ],
+)
+def test_t_cut_lists_without_a_usable_value_are_refused_as_options(
+    campaign, tmp_path, capsys, command, tcut, phrase
+):
+    # issue 20: --tcut=, gave numpy's "zero-size array to reduction operation" after the H fit
+    # (discover took it as "no --tcut" and ran with its defaults); nan reached the analysis
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as info:
+        main([command, str(campaign), "--config", "D2", f"--tcut={tcut}", "-o", str(out)])
+    assert info.value.code == 2
+    err = capsys.readouterr().err
+    assert f"argument --tcut: {phrase}" in err and "Traceback" not in err, err
+    assert not out.exists()
+
+
+def test_control_characters_in_a_configuration_name_are_escaped_in_error_lines(
+    campaign, tmp_path, capsys
+):
+    # issue 20: a newline or ANSI escape in a name rewrote the terminal in error lines
+    evil = tmp_path / "evil.h5"
+    shutil.copy(campaign, evil)
+    name = "D\x1b[31mX\nY"
+    with h5py.File(evil, "a") as f:
+        f.move("configs/D2", f"configs/{name}")
+    for command in ("fit", "linefit", "budget", "discover"):
+        out = tmp_path / command
+        argv = [command, str(evil), "--config", name, "--tcut", "1", "-o", str(out)]
+        assert main(argv) in (1, 2)
+        err = capsys.readouterr().err
+        assert err.startswith("error: t_cut = 1 s is beyond the record of /configs/D") and (
+            "D\\x1b[31mX\\nY" in err
+        ), err
+        assert err.count("\n") == 1 and "\x1b" not in err, err
+        assert not out.exists()
 
 
 def _far_cmds(campaign, tmp_path):
@@ -699,3 +782,31 @@ def test_truth_with_a_hard_link_cycle_is_refused_by_path(tmp_path):
     assert any(v.path == "/truth/a/loop" and "cycle" in v.message for v in info.value.violations), (
         info.value
     )
+
+
+def test_validate_escapes_control_characters_in_the_paths_it_refuses(campaign, tmp_path, capsys):
+    # found by the property test (issue 20): the REFUSED list printed a configuration name with
+    # an ANSI escape raw (the summary of a good file already escaped it)
+    evil = tmp_path / "evil.h5"
+    shutil.copy(campaign, evil)
+    with h5py.File(evil, "a") as f:
+        del f["configs/D2/cmds/nu_hz"]
+        f.move("configs/D2", "configs/\x1b[31mD2\n")
+    assert main_validate(evil) == 1
+    out = capsys.readouterr().out
+    assert "error: /configs/\\x1b[31mD2\\n/cmds/nu_hz: required dataset is missing" in out, out
+    assert all(line.isprintable() for line in out.splitlines()), out
+
+
+def test_a_beat_note_without_signal_stops_the_h_fit_at_once():
+    # a record built in code (not read from a file) reaches the fit: refused, never a search
+    # from a NaN start that does not end (issue 20, found by the CLI property test)
+    from types import SimpleNamespace
+
+    from bayes_tfcrds.fit.beat_note import fit_beat_note
+
+    dead = SimpleNamespace(f_hz=np.geomspace(1e3, 4e7, 60), h_mag=np.zeros(60), h_mag_u=None)
+    start = time.perf_counter()
+    with pytest.raises(ValueError, match="no signal at its lowest frequencies"):
+        fit_beat_note(dead)
+    assert time.perf_counter() - start < 5

@@ -137,8 +137,8 @@ def test_linefit_json_and_crds_bias(campaign, tmp_path):
 
 
 def test_bad_invocations_give_clear_errors(campaign, tmp_path, capsys):
-    with pytest.raises(SystemExit, match="no configuration 'D9'"):
-        main(["fit", str(campaign), "--config", "D9", "-o", str(tmp_path / "x.csv")])
+    assert main(["fit", str(campaign), "--config", "D9", "-o", str(tmp_path / "x.csv")]) == 1
+    assert capsys.readouterr().err.startswith("error: no configuration 'D9'")
     assert (
         main(["fit", str(campaign), "--config", "D2", "--tcut", "1", "-o", str(tmp_path / "x.csv")])
         == 1
@@ -331,3 +331,98 @@ def test_study_file_that_is_not_text_or_is_a_folder_is_refused(tmp_path):
         load_study(bad)
     with pytest.raises(StudyError, match="is a folder"):
         load_study(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def small_bundle(tmp_path_factory):
+    path = tmp_path_factory.mktemp("study_bundle") / "d2.h5"
+    argv = ["simulate", "--points", "9", "--samples", "2048", "--seed", "1", "-o", str(path)]
+    assert main(argv) == 0
+    return path
+
+
+def _study_on(tmp_path, bundle, kind="tcut"):
+    study = tmp_path / "s.toml"
+    study.write_text(
+        f'[study]\nname = "s"\nkind = "{kind}"\n[campaign]\nbundle = "{bundle}"\n'
+        "[analysis]\nt_cuts_us = [2, 4]\nmcmc_steps = 50\n"
+    )
+    return study
+
+
+def _no_cmds(src, dst):
+    import h5py
+
+    shutil.copy(src, dst)
+    with h5py.File(dst, "a") as f:
+        del f["configs/D2/cmds"]
+
+
+@pytest.mark.parametrize(
+    "damage, kind, phrase",
+    [
+        ("missing", "tcut", "campaign.bundle: {b}: not a valid bundle: /: file not found"),
+        ("truncated", "tcut", "not a valid bundle: /: truncated or corrupt HDF5 file"),
+        ("no cmds", "tcut", "a tcut study compares each configuration with its CMDS reference"),
+        ("no cmds", "window_history", "has no /cmds in ['D2']"),
+        ("no cmds", "budgets", "has no /cmds in ['D2']"),
+    ],
+)
+def test_a_study_bundle_it_cannot_use_is_refused_before_any_work(
+    small_bundle, tmp_path, capsys, damage, kind, phrase
+):
+    # issue 20: a missing or truncated bundle gave a traceback (and left an empty report folder);
+    # without /cmds the tcut and window_history studies crashed on None after their fits, and a
+    # budgets study after its whole MCMC run
+    bundle = tmp_path / "b.h5"
+    if damage == "truncated":
+        bundle.write_bytes(small_bundle.read_bytes()[:50000])
+    elif damage == "no cmds":
+        _no_cmds(small_bundle, bundle)
+    out = tmp_path / "report"
+    assert main(["study", str(_study_on(tmp_path, bundle, kind)), "--quiet", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1, err
+    assert phrase.format(b=bundle) in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("kind", ["tcut", "figures", "window_history"])
+def test_a_configuration_name_with_dollars_is_drawn_as_text(small_bundle, tmp_path, kind):
+    # issue 20: matplotlib read a configuration named $\frac{1}$ as mathtext and the study ended
+    # in a parse error after all its work, with an empty report folder
+    import h5py
+
+    bundle = tmp_path / "frac.h5"
+    shutil.copy(small_bundle, bundle)
+    with h5py.File(bundle, "a") as f:
+        f.move("configs/D2", "configs/$\\frac{1}$")
+    out = tmp_path / "report"
+    argv = ["study", str(_study_on(tmp_path, bundle, kind)), "--quiet", "--workers", "1"]
+    assert main([*argv, "-o", str(out)]) == 0
+    assert (out / "s.html").is_file() and (out / "s.pdf").is_file()
+    assert "frac{1}" in (out / "numbers.json").read_text()  # the configuration was analysed
+
+
+def test_linefit_json_stays_json_when_a_shape_parameter_is_held_at_its_bound(
+    small_bundle, tmp_path, capsys
+):
+    # found by the property test (issue 20): the correlation row of a parameter held at 0 by
+    # --shape-bounds physical was NaN, written as the non-JSON token NaN
+    out = tmp_path / "line.json"
+    argv = ["linefit", str(small_bundle), "--shape-bounds", "physical", "-o", str(out)]
+    assert main(argv) == 0
+
+    def refuse(token):
+        raise ValueError(f"{token} in {out}")
+
+    result = json.loads(out.read_text(), parse_constant=refuse)
+    held = result["shape_at_bound"]
+    assert held, "this bundle's Gamma2 ends at 0 under physical bounds (the case under test)"
+    names, matrix = result["correlation"]["names"], result["correlation"]["matrix"]
+    for i, name in enumerate(names):
+        if name in held:  # undefined for u = 0: null, in its row and its column
+            assert matrix[i] == [None] * len(names)
+            assert all(row[i] is None for row in matrix)
+        else:
+            assert matrix[i][i] == 1.0

@@ -93,6 +93,8 @@ def test_missing_folders_of_a_file_output_are_created(tmp_path):
         (["--samples", "0"], "n_samples = 0"),
         (["--samples", "-1"], "n_samples = -1"),
         (["--samples", "100000000"], "n_samples = 100000000"),
+        (["--points", "0"], "n_points = 0"),
+        (["--points", "1"], "n_points = 1"),
         (["--points", "2"], "n_points = 2"),
         (["--effect", "extinction_tail:tau_s=0"], "tau_s = 0.0 is outside"),
         (["--effect", "extinction_tail:tau_s=nan"], "tau_s = nan is outside"),
@@ -100,6 +102,7 @@ def test_missing_folders_of_a_file_output_are_created(tmp_path):
         (["--effect", "speed_dependence:gamma2_ratio=-10"], "gamma2_ratio = -10.0"),
         (["--effect", "etalon:period_hz=inf"], "period_hz = inf"),
         (["--preset", "letter-D1", "--preset", "letter-D1"], "letter-D1 given more than once"),
+        (["--effect", "etalon", "--effect", "etalon:phase_rad=1"], "--effect etalon given more"),
     ],
 )
 def test_simulate_refuses_impossible_settings_in_one_line(tmp_path, capsys, options, phrase):
@@ -123,4 +126,56 @@ def test_discover_refuses_options_that_give_nonsense(tmp_path, capsys, options, 
     out = tmp_path / "disc"
     assert main(["discover", str(bundle), "--config", "D2", *options, "-o", str(out)]) == 2
     assert phrase in capsys.readouterr().err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("command", ["fit", "linefit", "simulate"])
+def test_file_commands_into_a_directory_are_refused_before_any_work(tmp_path, capsys, command):
+    # issue 20: -o <directory> raised IsADirectoryError after the work and left a .tmp behind
+    bundle = tmp_path / "c.h5"
+    assert main(["simulate", "--points", "9", "--samples", "1024", "-o", str(bundle)]) == 0
+    capsys.readouterr()
+    folder = tmp_path / "results"
+    folder.mkdir()
+    args = ["simulate"] if command == "simulate" else [command, str(bundle), "--config", "D2"]
+    assert main([*args, "-o", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert err == f"error: {folder} is a directory; give a file name inside it\n"
+    assert not list(folder.iterdir()) and not list(tmp_path.glob(".*tmp*"))
+
+
+def test_a_live_writers_temporaries_survive_a_budget_folder_clean_up(tmp_path):
+    # a budget's outputs clean what killed runs left; a concurrent writer's file is not theirs
+    from bayes_tfcrds.output.files import clean_dead_writers, folder_lock
+
+    live = tmp_path / f".budget.json.{os.getpid()}-0123456789ab.tmp"
+    live.write_text("being written")
+    dead = tmp_path / ".budget.json.999999999-0123456789ab.tmp"
+    dead.write_text("left by a SIGKILL")
+    assert clean_dead_writers(tmp_path) == [dead]
+    assert live.exists() and not dead.exists()
+    with folder_lock(tmp_path / "new"), folder_lock(tmp_path / "new"):  # nested use in one run
+        assert (tmp_path / "new").is_dir()
+
+
+@pytest.mark.parametrize("command", ["simulate", "fit", "budget", "study", "discover", "demo"])
+@pytest.mark.parametrize("seed", ["-1", str(2**63), "1.5"])
+def test_a_seed_outside_the_seed_range_is_refused_as_an_option(tmp_path, capsys, command, seed):
+    # issue 20 (study seed -1): the option had no rule; demo --seed -1 ended in numpy's
+    # traceback, simulate and budget in its "expected non-negative integer", the others took it
+    args = {
+        "simulate": ["simulate"],
+        "fit": ["fit", "c.h5"],
+        "budget": ["budget", "c.h5"],
+        "study": ["study", "s.toml"],
+        "discover": ["discover", "c.h5"],
+        "demo": ["demo"],
+    }[command]
+    out = tmp_path / "out"
+    with pytest.raises(SystemExit) as info:
+        main([*args, "--seed", seed, "-o", str(out)])
+    assert info.value.code == 2
+    assert f"argument --seed: expected an integer in [0, 2**63), got '{seed}'" in (
+        capsys.readouterr().err
+    )
     assert not out.exists()

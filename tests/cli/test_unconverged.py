@@ -70,3 +70,21 @@ def test_fit_reports_unconverged_rows_and_fails_when_none_converged(
     assert re.search(
         r"FAILED: (\d+) of \1 decay-time fits did not converge", capsys.readouterr().err
     )
+
+
+def test_a_beat_note_fit_that_fails_from_every_start_is_an_error_line(
+    bundle_path, tmp_path, monkeypatch, capsys
+):
+    # found by the CLI property test (issue 20): fit ended in the RuntimeError's traceback
+    def fails(*args, **kwargs):
+        raise RuntimeError("the beat-note fit failed from every starting point")
+
+    monkeypatch.setattr(hc, "fit_beat_note", fails)
+    out = tmp_path / "fit.csv"
+    assert main(["fit", str(bundle_path), "--config", "D2", "-o", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err == (
+        "error: /configs/D2/transfer_function: the beat-note fit failed from every starting "
+        "point; check b12_v and b12_u_v (bayes-tfcrds validate shows the beat note)\n"
+    )
+    assert not out.exists()

@@ -18,7 +18,12 @@ import h5py
 import numpy as np
 import pytest
 
-from bayes_tfcrds.inference.diagnostics import Gates, chain_diagnostics, integrated_time
+from bayes_tfcrds.inference.diagnostics import (
+    Gates,
+    burn_in,
+    chain_diagnostics,
+    integrated_time,
+)
 from bayes_tfcrds.inference.result import SamplingResult
 from bayes_tfcrds.inference.runner import _evaluate, run_ensembles
 
@@ -121,6 +126,19 @@ def test_integrated_time_survives_walkers_that_never_visit_the_tail():
     tau = integrated_time(ind)
     assert np.isfinite(tau) and tau > 1
     assert integrated_time(np.ones((100, 4))) == np.inf  # constant: no information
+
+
+def test_a_run_of_one_or_two_steps_is_diagnosed_not_crashed():
+    # found by the CLI property test (issue 20): budget --steps 1 --max-steps 1 ended in an
+    # IndexError, the burn-in's pilot of a one-step chain being empty
+    rng = np.random.default_rng(3)
+    assert integrated_time(np.empty((0, 8))) == np.inf
+    assert integrated_time(rng.normal(size=(1, 8))) == np.inf
+    for n in (1, 2):
+        chains = rng.normal(size=(4, n, 8, 2))
+        assert burn_in(chains) <= n // 2
+        d = chain_diagnostics(chains[:, burn_in(chains) :, :, 0])
+        assert d["ess_bulk"] == 0 and d["n_tau"] == 0  # no information: every gate fails
 
 
 def test_derived_quantities_are_gated():

@@ -86,3 +86,53 @@ def test_a_failed_budget_is_marked_failed_where_a_reader_looks_first(bundles, tm
     # the same command into the same folder resumes; another method there is refused by name
     assert main([*args, "--method", "crds", "--steps", "30", "--max-steps", "30"]) == 1
     assert "option method" in capsys.readouterr().err
+
+
+def test_a_second_budget_into_a_busy_folder_is_refused_in_one_line(bundles, tmp_path, capsys):
+    # issue 20: two budgets into one folder interleaved their chain commits or stopped in HDF5's
+    # BlockingIOError; the folder is now held by one run (a flock, released when it ends)
+    import subprocess
+    import sys
+
+    b, _ = bundles
+    path = tmp_path / "d2.h5"
+    save_bundle(b, path)
+    out = tmp_path / "out"
+    out.mkdir()
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import fcntl, os, sys, time\n"
+            "fd = os.open(sys.argv[1], os.O_RDONLY)\n"
+            "fcntl.flock(fd, fcntl.LOCK_EX)\n"
+            "print('held', flush=True)\n"
+            "time.sleep(120)\n",
+            str(out),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert holder.stdout.readline() == "held\n"
+        args = ["budget", str(path), "--config", "D2", "--quiet", "-o", str(out)]
+        assert main([*args, "--steps", "30", "--max-steps", "30"]) == 1
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {out} is in use by another run") and err.count("\n") == 1
+        assert list(out.iterdir()) == []  # nothing claimed, nothing sampled
+    finally:
+        holder.kill()
+        holder.wait()
+    # the holder is gone: the folder is free again
+    assert main([*args, "--steps", "30", "--max-steps", "30"]) == 3
+
+
+def test_a_budget_of_one_step_fails_its_gates_instead_of_crashing(bundles, tmp_path, capsys):
+    # found by the CLI property test (issue 20): an IndexError in the burn-in
+    b, _ = bundles
+    path = tmp_path / "d2.h5"
+    save_bundle(b, path)
+    out = tmp_path / "out"
+    args = ["budget", str(path), "--config", "D2", "--quiet", "--profile", "voigt"]
+    assert main([*args, "--steps", "1", "--max-steps", "1", "-o", str(out)]) == 3
+    assert "FAILED: failed" in capsys.readouterr().err
