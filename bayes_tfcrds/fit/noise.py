@@ -49,6 +49,8 @@ WHITENESS_LAGS = 20  # lags of the Box-Pierce statistic (the correlation time of
 WHITENESS_ALPHA = 1e-3  # false-alarm rate of each of the two colour tests per configuration
 Z_KAPPA = 3.29  # two-sided normal quantile of WHITENESS_ALPHA, for the kappa test
 DIAGNOSIS_T_CUT_S = 4e-6  # the letter's middle truncation time (s)
+PAIR_TAU_REL = 0.03  # records paired for the noise estimate differ in tau by at most 3 %
+MIN_PAIRS = 4
 MIN_KEPT = 0.5  # bins that kept less of the noise's power are modelled, not divided
 # The lowest bins of the twice-padded grid are modelled as flat or flat + flicker: 64 bins span
 # 1/(2 n dt) ... 32/(n dt), about 200 kHz for 16384 samples at 20 ns, beyond the bandwidth
@@ -248,6 +250,25 @@ def colour_factors(psd: np.ndarray, j: np.ndarray) -> np.ndarray:
     return _two_sided(power * psd) / (_two_sided(psd) * _two_sided(power) / n_fft)
 
 
+def record_pairs(tau_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Disjoint pairs of records with nearly equal decay times: (first indices, second indices).
+
+    A model error (an H a little off, an effect the model lacks) leaves the same slow shape, per
+    unit amplitude, in the residuals of every record with the same tau, and the colour tests
+    would take it for 1/f noise. The difference of two such records' residuals cancels it and
+    keeps the noise: two independent draws of one stationary process, so the same PSD shape.
+    Records are sorted by tau and paired in turn; pairs whose taus differ by more than
+    :data:`PAIR_TAU_REL` are dropped unless fewer than :data:`MIN_PAIRS` would remain.
+    """
+    order = np.argsort(tau_s)
+    n = order.size // 2
+    a, b = order[0 : 2 * n : 2], order[1 : 2 * n : 2]
+    close = np.abs(tau_s[a] - tau_s[b]) <= PAIR_TAU_REL * tau_s[a]
+    if np.sum(close) >= MIN_PAIRS:
+        a, b = a[close], b[close]
+    return a, b
+
+
 def diagnose_noise(
     ringdowns, tf=None, window: str = "extinction", t_cut_s: float = DIAGNOSIS_T_CUT_S
 ) -> NoiseDiagnosis:
@@ -274,15 +295,18 @@ def diagnose_noise(
         keep_residuals=True,
     )
     use = np.nonzero(fits.converged & (fits.tau_s > 0))[0]
-    if use.size < 2:
-        raise ValueError("noise diagnosis: fewer than two transients could be fitted")
+    if use.size < 4:
+        raise ValueError("noise diagnosis: fewer than four transients could be fitted")
     first = int(first_index_at(t[0], ringdowns.dt_s, t_cut))
     r = fits.residuals_v[use, first:]
     level = np.sqrt(np.mean(r**2, axis=-1))
-    z = r / level[:, None]
+    a, b = record_pairs(fits.tau_s[use])
+    amp = fits.amplitude_v[use, None]
+    d = r[a] / amp[a] - r[b] / amp[b]
+    z = d / np.sqrt(np.mean(d**2, axis=-1))[:, None]
     n_fft = 1 << int(np.ceil(np.log2(2 * z.shape[1])))
     basis = fitted_basis(t[first:], fits.tau_s[use])
-    psd, band = noise_spectrum(z, basis, n_fft)
+    psd, band = noise_spectrum(z, basis[np.concatenate([a, b])], n_fft)
     j = profiled_tau_direction(basis)
     kappa_used = colour_factors(psd, j)
     zf = np.fft.rfft(z, n_fft, axis=-1)
