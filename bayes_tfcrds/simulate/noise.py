@@ -143,13 +143,3 @@ def coloured_noise(shape, filt: np.ndarray, rng: np.random.Generator) -> np.ndar
     n_fft = 2 * (filt.size - 1)
     white = rng.standard_normal((*shape[:-1], n_fft))
     return np.fft.irfft(np.fft.rfft(white, axis=-1) * filt, n_fft, axis=-1)[..., :n]
-
-
-def kappa_low_frequency(colour: NoiseColour, n_samples: int, dt_s: float, chain=None) -> float:
-    """PSD(0) over the mean PSD: the variance factor of a slow fitted parameter (the truth's).
-
-    A parameter whose Jacobian varies slowly against the noise's correlation time has its
-    least-squares variance raised by this factor over the white-noise formula.
-    """
-    filt = shaping_filter(colour, n_samples, dt_s, chain)
-    return float(filt[0] ** 2)
