@@ -215,7 +215,16 @@ def low_band(psd: np.ndarray, kept: np.ndarray, n_rows: int) -> LowBand:
     )
 
 
-def noise_spectrum(z: np.ndarray, basis: np.ndarray, n_fft: int) -> tuple:
+def pooled_periodogram(z: np.ndarray, n_fft: int) -> np.ndarray:
+    """sum_rows |rfft(z, n_fft)|^2 / (rows n): the spectrum of the pooled autocovariance of ``z``.
+
+    Zero-padding to ``n_fft`` >= 2n keeps the implied autocovariance linear (no circular wrap).
+    """
+    zf = np.fft.rfft(z, n_fft, axis=-1)
+    return np.mean(zf.real**2 + zf.imag**2, axis=0) / z.shape[1]
+
+
+def noise_spectrum(z: np.ndarray, basis: np.ndarray, n_fft: int, pgram=None) -> tuple:
     """(PSD shape on the rfft grid of ``n_fft``, LowBand) of the noise behind residuals ``z``.
 
     ``z`` (rows, n) normalised residuals, ``basis`` their fits' directions. The pooled
@@ -223,10 +232,10 @@ def noise_spectrum(z: np.ndarray, basis: np.ndarray, n_fft: int) -> tuple:
     survived the fit's projection in each bin, 1 - sum_c |Q_c(f)|^2 / n averaged over rows; the
     lowest :data:`LOW_BINS` bins are replaced by the :class:`LowBand` model fitted to them, which
     both extrapolates to the bins the projection emptied and averages their sampling noise.
+    ``pgram`` is :func:`pooled_periodogram` of ``z`` when the caller has it already.
     """
     n = z.shape[1]
-    zf = np.fft.rfft(z, n_fft, axis=-1)
-    pgram = np.mean(zf.real**2 + zf.imag**2, axis=0) / n
+    pgram = pooled_periodogram(z, n_fft) if pgram is None else pgram
     # the share is a mean over rows of smooth functions of tau: 16 rows spanning them suffice
     some = np.unique(np.linspace(0, basis.shape[0] - 1, min(KEPT_ROWS, basis.shape[0])).astype(int))
     qf = np.fft.rfft(basis[some], n_fft, axis=1)
@@ -306,11 +315,11 @@ def diagnose_noise(
     z = d / np.sqrt(np.mean(d**2, axis=-1))[:, None]
     n_fft = 1 << int(np.ceil(np.log2(2 * z.shape[1])))
     basis = fitted_basis(t[first:], fits.tau_s[use])
-    psd, band = noise_spectrum(z, basis[np.concatenate([a, b])], n_fft)
+    pgram = pooled_periodogram(z, n_fft)
+    psd, band = noise_spectrum(z, basis[np.concatenate([a, b])], n_fft, pgram)
     j = profiled_tau_direction(basis)
     kappa_used = colour_factors(psd, j)
-    zf = np.fft.rfft(z, n_fft, axis=-1)
-    acov = np.fft.irfft(np.mean(zf.real**2 + zf.imag**2, axis=0), n_fft)[: WHITENESS_LAGS + 1]
+    acov = np.fft.irfft(pgram, n_fft)[: WHITENESS_LAGS + 1]
     rho = acov / acov[0]
     q = float(z.size * np.sum(rho[1:] ** 2))
     kappa = np.full(m, float(np.median(kappa_used)))
