@@ -1,7 +1,8 @@
 """Uncertainty of the line area.
 
 Propagation of H into tau and A, the posteriors the budget samples, the GUM budget of A, S and
-A/A_ref (run_budget), and its output files.
+A/A_ref (run_budget), and its output files; interlaboratory comparisons of budget results
+(comparison: reference value, chi-squared test, degrees of equivalence with correlations).
 
 May import: core, output, physics, fit, inference.
 """

@@ -1,0 +1,312 @@
+"""Statistics of an interlaboratory comparison (CCQM style, Cox 2002 Procedure A generalised).
+
+n results x_i of one measurand with a covariance matrix V (standard uncertainties u_i and the
+declared correlations r_ij of results that share inputs, e.g. the same H or manometer). The
+reference value is a linear function of the results plus an independent part,
+
+    x_ref = a^T x + c,   u_c = standard uncertainty of c (independent of every x_i),
+
+which covers the three choices of a comparison: the generalised-least-squares weighted mean
+(a = V^-1 1 / (1^T V^-1 1), c = 0), one laboratory's result (a = e_j) and a stated value
+(a = 0, c with its u). Every statistic then follows from V alone:
+
+    d = x - 1 x_ref = B x - 1 c,  B = I - 1 a^T,   cov(d) = B V B^T + u_c^2 1 1^T,
+
+so the correlation of x_i with x_ref is accounted for in u(d_i) whatever the reference (for
+the weighted mean of independent results u^2(d_i) = u_i^2 - u_ref^2, Cox 2002 eq. 8).
+
+All values are in one unit (the caller's); results are frozen dataclasses.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import numpy as np
+from scipy import stats
+
+#: coverage factor of the expanded uncertainties U(d) and of E_n
+K_EXPANDED = 2.0
+#: significance level of the chi-squared consistency test
+ALPHA = 0.05
+
+
+@dataclass(frozen=True)
+class Reference:
+    """How the reference value is chosen.
+
+    kind: 'weighted-mean' (GLS mean of all results), 'laboratory' (the result of ``lab``) or
+    'value' (a stated ``value`` with standard uncertainty ``u``, independent of the results),
+    value and u in the unit of the comparison.
+    """
+
+    kind: str = "weighted-mean"
+    lab: str | None = None
+    value: float | None = None
+    u: float | None = None
+
+
+@dataclass(frozen=True)
+class ReferenceValue:
+    """The reference value x_ref, its standard uncertainty and the weights a_i of the results."""
+
+    method: str
+    value: float
+    u: float
+    weights: tuple
+
+
+@dataclass(frozen=True)
+class Consistency:
+    """Chi-squared test of the results about their GLS weighted mean.
+
+    chi2 = r^T V^-1 r (r the residuals), dof = n - 1, p = P(chi2_dof > chi2), Birge ratio
+    R_B = sqrt(chi2 / dof); passed when p >= ALPHA (Cox 2002, Procedure A step 2).
+    """
+
+    chi2: float
+    dof: int
+    p_value: float
+    birge_ratio: float
+    passed: bool
+    alpha: float = ALPHA
+
+
+@dataclass(frozen=True)
+class Equivalence:
+    """Degree of equivalence of one result: d = x - x_ref, u(d), U(d) = k u(d), E_n and zeta.
+
+    zeta = d / u(d) and E_n = d / U(d); both are None where u(d) = 0 (the reference laboratory
+    against itself).
+    """
+
+    lab: str
+    d: float
+    u: float
+    U: float
+    en: float | None
+    zeta: float | None
+
+
+@dataclass(frozen=True)
+class PairEquivalence:
+    """Degree of equivalence of two results: d_ab = x_a - x_b, u, U = k u and E_n = d/U."""
+
+    lab_a: str
+    lab_b: str
+    d: float
+    u: float
+    U: float
+    en: float | None
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A comparison evaluated: inputs, reference value, consistency and degrees of equivalence."""
+
+    quantity: str
+    unit: str
+    labs: tuple
+    values: tuple
+    u: tuple
+    correlation: tuple
+    reference: ReferenceValue
+    consistency: Consistency
+    equivalence: tuple
+    pairs: tuple
+    k: float = K_EXPANDED
+
+    def to_dict(self) -> dict:
+        """A JSON-ready dict of every field (nested dataclasses as dicts)."""
+        return asdict(self)
+
+
+def covariance_matrix(u, correlation) -> np.ndarray:
+    """V_ij = r_ij u_i u_j, in the unit squared; refuses a matrix that is not positive definite.
+
+    Parameters
+    ----------
+    u : array (n,)
+        Standard uncertainties, all > 0.
+    correlation : array (n, n)
+        Symmetric, unit diagonal, |r_ij| <= 1.
+    """
+    u = np.asarray(u, dtype=float)
+    r = np.asarray(correlation, dtype=float)
+    if np.any(~np.isfinite(u)) or np.any(u <= 0):
+        raise ValueError("every standard uncertainty must be finite and > 0")
+    if not np.allclose(r, r.T) or not np.allclose(np.diag(r), 1.0) or np.any(np.abs(r) > 1):
+        raise ValueError("correlations must be symmetric, in [-1, 1], with a unit diagonal")
+    if np.linalg.eigvalsh(r).min() <= 1e-12:
+        raise ValueError(
+            "the declared correlations are not a valid correlation matrix (not positive "
+            "definite); check the pairs for contradictions, e.g. r = 1 twice with a third lab"
+        )
+    return r * np.outer(u, u)
+
+
+def gls_weights(cov) -> np.ndarray:
+    """Weights of the GLS weighted mean, a = V^-1 1 / (1^T V^-1 1) (they sum to 1).
+
+    For independent results a_i = u_i^-2 / sum_j u_j^-2 (Cox 2002 eq. 1).
+    """
+    vinv_1 = np.linalg.solve(cov, np.ones(len(cov)))
+    return vinv_1 / vinv_1.sum()
+
+
+def weighted_mean(x, cov) -> ReferenceValue:
+    """GLS weighted mean of results with covariance ``cov``: the best linear unbiased estimate.
+
+    x_ref = a^T x with u^2(x_ref) = a^T V a = 1 / (1^T V^-1 1); for independent results the
+    inverse-variance mean with u^2 = 1 / sum u_i^-2 (Cox 2002 eqs. 1-2).
+    """
+    return reference_value(x, cov, gls_weights(cov), 0.0, 0.0, "weighted mean")
+
+
+def consistency(x, cov, alpha: float = ALPHA) -> Consistency:
+    """Chi-squared test of the results about their GLS mean, with the Birge ratio.
+
+    Parameters
+    ----------
+    x : array (n,), n >= 2
+        Results, any unit.
+    cov : array (n, n)
+        Their covariance matrix, unit squared.
+    """
+    x = np.asarray(x, dtype=float)
+    res = x - weighted_mean(x, cov).value
+    chi2 = float(res @ np.linalg.solve(cov, res))
+    dof = x.size - 1
+    p = float(stats.chi2.sf(chi2, dof))
+    return Consistency(chi2, dof, p, float(np.sqrt(chi2 / dof)), p >= alpha, alpha)
+
+
+def reference_weights(labs, cov, reference: Reference) -> tuple[np.ndarray, float, float]:
+    """The linear form of x_ref: weights a (n,), offset c and its independent u_c."""
+    n = len(labs)
+    if reference.kind == "weighted-mean":
+        return gls_weights(cov), 0.0, 0.0
+    if reference.kind == "laboratory":
+        if reference.lab not in labs:
+            raise ValueError(f"reference laboratory {reference.lab!r} is not among {list(labs)}")
+        return np.eye(n)[list(labs).index(reference.lab)], 0.0, 0.0
+    if reference.kind == "value":
+        if reference.value is None or reference.u is None or not reference.u >= 0:
+            raise ValueError("a stated reference value needs a value and a standard u >= 0")
+        return np.zeros(n), float(reference.value), float(reference.u)
+    raise ValueError(f"unknown reference kind {reference.kind!r}")
+
+
+def reference_value(x, cov, a, c: float, u_c: float, method: str) -> ReferenceValue:
+    """x_ref = a^T x + c with u^2 = a^T V a + u_c^2."""
+    a = np.asarray(a, dtype=float)
+    return ReferenceValue(
+        method, float(a @ np.asarray(x) + c), float(np.sqrt(a @ cov @ a + u_c**2)), tuple(a)
+    )
+
+
+def degrees_of_equivalence(x, cov, a, c: float = 0.0, u_c: float = 0.0):
+    """d_i = x_i - x_ref and u(d_i) for x_ref = a^T x + c (c independent, uncertainty u_c).
+
+    cov(d) = B V B^T + u_c^2 1 1^T with B = I - 1 a^T, so a result's share in x_ref (its weight,
+    its correlations with the others) lowers u(d_i) as it must. Returns (d, u_d), unit of x.
+    """
+    x = np.asarray(x, dtype=float)
+    a = np.asarray(a, dtype=float)
+    b = np.eye(x.size) - np.outer(np.ones(x.size), a)
+    cov_d = b @ cov @ b.T + u_c**2
+    d = b @ x - c
+    return d, np.sqrt(np.clip(np.diag(cov_d), 0.0, None))
+
+
+def pairwise_differences(x, cov) -> tuple[np.ndarray, np.ndarray]:
+    """d_ij = x_i - x_j and u^2(d_ij) = u_i^2 + u_j^2 - 2 V_ij (declared correlations), (n, n)."""
+    x = np.asarray(x, dtype=float)
+    var = np.diag(cov)
+    u2 = var[:, None] + var[None, :] - 2.0 * cov
+    return x[:, None] - x[None, :], np.sqrt(np.clip(u2, 0.0, None))
+
+
+def _method_name(reference: Reference) -> str:
+    """How the reference value was formed, for tables: 'weighted mean', 'laboratory X', ..."""
+    if reference.kind == "laboratory":
+        return f"laboratory {reference.lab}"
+    return "weighted mean" if reference.kind == "weighted-mean" else "stated value"
+
+
+def _ratio_or_none(d: float, u: float) -> float | None:
+    return float(d / u) if u > 0 else None
+
+
+def compare(
+    labs,
+    x,
+    u,
+    correlation=None,
+    reference: Reference = Reference(),
+    quantity: str = "",
+    unit: str = "",
+) -> Comparison:
+    """Evaluate a comparison: reference value, consistency, degrees of equivalence, pairs.
+
+    Parameters
+    ----------
+    labs : sequence of str
+        Names of the n >= 2 results, all different.
+    x, u : array (n,)
+        Values and standard uncertainties in one unit (``unit``).
+    correlation : array (n, n), optional
+        Declared correlation matrix of the results (identity when None).
+    reference : Reference
+        Weighted mean (default), one laboratory, or a stated value with u.
+    """
+    labs = tuple(str(lab) for lab in labs)
+    x = np.asarray(x, dtype=float)
+    if x.size < 2 or len(set(labs)) != len(labs) or len(labs) != x.size:
+        raise ValueError("a comparison needs at least two results with different names")
+    r = np.eye(x.size) if correlation is None else np.asarray(correlation, dtype=float)
+    cov = covariance_matrix(u, r)
+    a, c, u_c = reference_weights(labs, cov, reference)
+    ref = reference_value(x, cov, a, c, u_c, _method_name(reference))
+    d, u_d = degrees_of_equivalence(x, cov, a, c, u_c)
+    eq = tuple(
+        Equivalence(
+            lab,
+            float(di),
+            float(ui),
+            float(K_EXPANDED * ui),
+            _ratio_or_none(di, K_EXPANDED * ui),
+            _ratio_or_none(di, ui),
+        )
+        for lab, di, ui in zip(labs, d, u_d)
+    )
+    return Comparison(
+        quantity=quantity,
+        unit=unit,
+        labs=labs,
+        values=tuple(float(v) for v in x),
+        u=tuple(float(v) for v in np.asarray(u, dtype=float)),
+        correlation=tuple(tuple(float(v) for v in row) for row in r),
+        reference=ref,
+        consistency=consistency(x, cov),
+        equivalence=eq,
+        pairs=_pairs(labs, x, cov),
+    )
+
+
+def _pairs(labs, x, cov) -> tuple:
+    """Every unordered pair (a before b in input order) with d_ab, u, U and E_n."""
+    d, u = pairwise_differences(x, cov)
+    n = len(labs)
+    return tuple(
+        PairEquivalence(
+            labs[i],
+            labs[j],
+            float(d[i, j]),
+            float(u[i, j]),
+            float(K_EXPANDED * u[i, j]),
+            _ratio_or_none(d[i, j], K_EXPANDED * u[i, j]),
+        )
+        for i in range(n)
+        for j in range(i + 1, n)
+    )
