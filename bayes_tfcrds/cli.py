@@ -356,6 +356,45 @@ def cmd_budget(args) -> int:
     return 0
 
 
+def cmd_compare(args) -> int:
+    """Interlaboratory comparison of budget.json results and a CSV from elsewhere."""
+    from bayes_tfcrds.uncertainty import comparison_inputs as ci
+    from bayes_tfcrds.uncertainty.comparison import Reference, compare
+    from bayes_tfcrds.uncertainty.comparison_report import write_comparison
+
+    try:
+        results = [r for spec in args.results for r in ci.read_result(spec, args.quantity)]
+        labs = [r.lab for r in results]
+        corr = ci.read_correlations(args.correlations, labs) if args.correlations else None
+        ref = Reference()
+        if args.reference is not None:
+            value = args.reference.split(",")
+            try:
+                ref = Reference("value", value=float(value[0]), u=float(value[1]))
+            except (ValueError, IndexError):
+                ref = Reference("laboratory", lab=args.reference)
+        comp = compare(
+            labs,
+            [r.value for r in results],
+            [r.u for r in results],
+            corr,
+            ref,
+            args.quantity,
+            ci.unit_of(args.quantity),
+        )
+    except ValueError as exc:  # ComparisonInputError is one; bad names, singular correlations
+        raise Refused(str(exc)) from None
+    written = write_comparison(comp, results, args.output, seed=args.seed)
+    c, r = comp.consistency, comp.reference
+    if not args.quiet:
+        _say(f"wrote {', '.join(str(p) for p in written)}")
+    print(
+        f"x_ref = {r.value:.6e} +/- {r.u:.2e} {comp.unit} ({r.method}); chi2 = {c.chi2:.3f} "
+        f"({c.dof} dof, p = {c.p_value:.3g}, R_B = {c.birge_ratio:.3f})"
+    )
+    return 0
+
+
 def cmd_study(args) -> int:
     from concurrent.futures import ProcessPoolExecutor
 
@@ -673,6 +712,37 @@ def _add_demo(sub) -> None:
     sp.set_defaults(func=cmd_demo)
 
 
+def _add_compare(sub) -> None:
+    """The ``compare`` command's options."""
+    sp = _common(
+        sub.add_parser("compare", help="interlaboratory comparison: reference value, chi2, DoE"),
+        note=" (compare draws no random numbers; the seed is recorded)",
+    )
+    sp.add_argument(
+        "results",
+        nargs="+",
+        metavar="RESULT",
+        help="[LABEL=]budget.json (or its folder; label defaults to the folder name), or a CSV "
+        "with columns lab,value,u,unit[,dof] (or U,k in place of u)",
+    )
+    sp.add_argument(
+        "--quantity",
+        choices=["intensity", "line_area", "ratio"],
+        default="intensity",
+        help="S(296 K) in cm/molecule, A in cm^-2, or A/A_ref",
+    )
+    sp.add_argument(
+        "--reference",
+        metavar="LAB|VALUE,U",
+        help="reference value: a laboratory's result, or a stated value and its standard u in "
+        "the comparison unit (default: the weighted mean)",
+    )
+    sp.add_argument("--correlations", metavar="FILE", help="CSV lab_a,lab_b,r of shared inputs")
+    sp.add_argument("--quiet", action="store_true", help="no list of files written")
+    sp.add_argument("-o", "--output", required=True, help="output folder")
+    sp.set_defaults(func=cmd_compare)
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The ``bayes-tfcrds`` argument parser: one sub-command per job."""
     p = argparse.ArgumentParser(
@@ -691,6 +761,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_study,
         _add_discover,
         _add_demo,
+        _add_compare,
     ):
         add(sub)
     return p
@@ -711,7 +782,7 @@ def main(argv=None) -> int:
         return _fail(exc, exc.code)
 
 
-_FOLDER_COMMANDS = ("cmd_budget", "cmd_study", "cmd_discover", "cmd_demo")
+_FOLDER_COMMANDS = ("cmd_budget", "cmd_study", "cmd_discover", "cmd_demo", "cmd_compare")
 
 
 def _check_output(args) -> None:
