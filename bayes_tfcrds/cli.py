@@ -733,7 +733,7 @@ def _add_compare(sub) -> None:
     )
     sp.add_argument(
         "--reference",
-        metavar="LAB|VALUE,U",
+        metavar="LAB|VALUE,u",
         help="reference value: a laboratory's result, or a stated value and its standard u in "
         "the comparison unit (default: the weighted mean)",
     )

@@ -13,9 +13,11 @@ which covers the three choices of a comparison: the generalised-least-squares we
     d = x - 1 x_ref = B x - 1 c,  B = I - 1 a^T,   cov(d) = B V B^T + u_c^2 1 1^T,
 
 so the correlation of x_i with x_ref is accounted for in u(d_i) whatever the reference (for
-the weighted mean of independent results u^2(d_i) = u_i^2 - u_ref^2, Cox 2002 eq. 8).
+the weighted mean of independent results u^2(d_i) = u_i^2 - u_ref^2, Cox 2002 Procedure A).
 
 All values are in one unit (the caller's); results are frozen dataclasses.
+
+Cox 2002: M. G. Cox, "The evaluation of key comparison data", Metrologia 39 (2002) 589-595.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ class Consistency:
     """Chi-squared test of the results about their GLS weighted mean.
 
     chi2 = r^T V^-1 r (r the residuals), dof = n - 1, p = P(chi2_dof > chi2), Birge ratio
-    R_B = sqrt(chi2 / dof); passed when p >= ALPHA (Cox 2002, Procedure A step 2).
+    R_B = sqrt(chi2 / dof); passed when p >= ALPHA (Cox 2002, Procedure A).
     """
 
     chi2: float
@@ -148,7 +150,7 @@ def covariance_matrix(u, correlation) -> np.ndarray:
 def gls_weights(cov) -> np.ndarray:
     """Weights of the GLS weighted mean, a = V^-1 1 / (1^T V^-1 1) (they sum to 1).
 
-    For independent results a_i = u_i^-2 / sum_j u_j^-2 (Cox 2002 eq. 1).
+    For independent results a_i = u_i^-2 / sum_j u_j^-2 (Cox 2002, Procedure A).
     """
     vinv_1 = np.linalg.solve(cov, np.ones(len(cov)))
     return vinv_1 / vinv_1.sum()
@@ -158,7 +160,7 @@ def weighted_mean(x, cov) -> ReferenceValue:
     """GLS weighted mean of results with covariance ``cov``: the best linear unbiased estimate.
 
     x_ref = a^T x with u^2(x_ref) = a^T V a = 1 / (1^T V^-1 1); for independent results the
-    inverse-variance mean with u^2 = 1 / sum u_i^-2 (Cox 2002 eqs. 1-2).
+    inverse-variance mean with u^2 = 1 / sum u_i^-2 (Cox 2002, Procedure A).
     """
     return reference_value(x, cov, gls_weights(cov), 0.0, 0.0, "weighted mean")
 

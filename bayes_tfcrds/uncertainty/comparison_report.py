@@ -131,6 +131,7 @@ def plot_equivalence(comp: Comparison, stem: Path) -> list:
         color="C0",
     )
     ax.axhline(0.0, color="0.3", lw=0.8)
+    ax.set_xlabel("laboratory")
     ax.set_xticks(list(pos), [literal(lab) for lab in comp.labs], rotation=30, ha="right")
     unit = "" if comp.unit == "1" else f" {comp.unit}"
     ax.set_ylabel(f"$d_i$ / ($10^{{{round(math.log10(scale))}}}${literal(unit)})")

@@ -1,10 +1,12 @@
 """Statistics of an interlaboratory comparison (bayes_tfcrds.uncertainty.comparison).
 
-No published worked example whose input data and results could be read was found (see the
-module docstring of the command's report); the statistics are checked against independent
-results instead: closed forms for independent results (Cox, Metrologia 39 (2002) 589,
-eqs. 1-2 and 8: x_ref, u(x_ref), u^2(d_i) = u_i^2 - u_ref^2), the two-laboratory limit, the
-chi-squared distribution of chi2_obs, and a brute-force Monte Carlo of correlated results.
+No published comparison or standard's worked example was found whose input data and published
+statistics could be read and cited here, so there is no published-digits oracle yet. The
+statistics are checked against independent results instead: the closed forms for independent
+results (M. G. Cox, "The evaluation of key comparison data", Metrologia 39 (2002) 589-595,
+Procedure A: eqs. for x_ref, u(x_ref), chi2_obs and u^2(d_i) = u_i^2 - u_ref^2), the two-laboratory
+limit, the chi-squared distribution of chi2_obs, and a brute-force Monte Carlo of correlated
+results.
 """
 
 import math
