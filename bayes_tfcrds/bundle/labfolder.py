@@ -528,7 +528,7 @@ def _cmds(folder: Path, spec: dict, where: str) -> dict:
 
 def _read_doc(folder) -> tuple[Path, dict]:
     folder = Path(folder)
-    toml = folder / LAB_TOML if folder.is_dir() else folder
+    toml = folder if folder.is_file() else folder / LAB_TOML
     if not toml.is_file():
         raise LabFolderError(
             f"{toml}: not found; a lab folder needs a {LAB_TOML} (bayes-tfcrds import --example "

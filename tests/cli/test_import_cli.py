@@ -78,3 +78,20 @@ def test_linefit_spectrum_recovers_a_known_area(tmp_path, capsys):
     assert abs(got["value"] - line_area_to_cm2(area)) < 4 * got["u"]
     assert main(["linefit", str(out), "--spectrum", str(tmp_path), "-o", str(out)]) == 2
     assert "one of them" in capsys.readouterr().err
+
+
+def test_readme_lab_toml_imports_the_example_folder(tmp_path):
+    """The README's lab.toml, as written, reads the example folder's files."""
+    import re
+    from pathlib import Path
+
+    from bayes_tfcrds.bundle.labfolder import read_lab_folder
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text(encoding="utf-8")
+    block = re.search(r"```toml\n(.*?)```", readme, re.S).group(1)
+    lab = tmp_path / "lab"
+    assert main(["import", "--example", str(lab), "--quiet"]) == 0
+    (lab / "lab.toml").write_text(block)
+    bundle = read_lab_folder(lab)
+    assert bundle.sample.temperature_k == pytest.approx(296.0, rel=1e-12)  # 22.85 degC
+    assert bundle.cavity.fsr_hz == 203e6 and list(bundle.configs) == ["D2"]
