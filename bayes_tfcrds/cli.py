@@ -205,20 +205,13 @@ def cmd_simulate(args) -> int:
 def cmd_linefit(args) -> int:
     import json
 
-    from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line, analyse_spectrum
+    from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line
 
     if (args.file is None) == (args.spectrum is None):
         raise Refused("give a bundle FILE or --spectrum LAB_DIR (one of them)", 2)
     try:
         if args.spectrum is not None:
-            from bayes_tfcrds.bundle.labfolder import read_lab_spectrum
-
-            result = analyse_spectrum(
-                read_lab_spectrum(args.spectrum),
-                args.profile,
-                physical_bounds=args.shape_bounds == "physical",
-            )
-            _say(f"note: {result.input_note} (the fit's u(A) only; no t_cut, no H)")
+            result, record = _spectrum_line(args)
         else:
             bundle = _load(args.file)
             result = analyse_line(
@@ -230,9 +223,10 @@ def cmd_linefit(args) -> int:
                 profile_name=args.profile,
                 physical_bounds=args.shape_bounds == "physical",
             )
+            record = result.to_dict()
     except (LineFitError, ValueError) as exc:
         return _fail(exc, 1)
-    atomic_write_text(Path(args.output), json.dumps(result.to_dict(), indent=2) + "\n")
+    atomic_write_text(Path(args.output), json.dumps(record, indent=2) + "\n")
     for line in _linefit_warnings(result, args.tcut[0]):
         _say(line)
     la, ra, q = result.line_area, result.reference_area, result.ratio
@@ -245,6 +239,23 @@ def cmd_linefit(args) -> int:
         )
     )
     return 0
+
+
+def _spectrum_line(args):
+    """linefit --spectrum: the line fit of a lab's tau(nu) or alpha(nu) and its budget (no H)."""
+    from bayes_tfcrds.bundle.labfolder import read_lab_spectrum
+    from bayes_tfcrds.fit.line_analysis import analyse_spectrum
+    from bayes_tfcrds.uncertainty.spectrum_budget import spectrum_budget
+
+    spectrum = read_lab_spectrum(args.spectrum)
+    result = analyse_spectrum(
+        spectrum, args.profile, physical_bounds=args.shape_bounds == "physical"
+    )
+    budget = spectrum_budget(result, spectrum.sample)
+    _say(f"note: {result.input_note}: no H, no t_cut; the budget holds the fit and the line shape")
+    print(budget.budget_a.to_markdown())
+    print(budget.budget_s.to_markdown())
+    return result, dict(result.to_dict(), budget=budget.to_dict())
 
 
 def _linefit_warnings(result, t_cut_s: float) -> list[str]:
@@ -629,7 +640,8 @@ def _add_linefit(sub) -> None:
         "--spectrum",
         metavar="LAB_DIR",
         help="instead of a bundle: a lab folder whose lab.toml has a [spectrum] table (tau or "
-        "alpha vs nu with uncertainties); spectrum-level input, no transfer-function rows",
+        "alpha vs nu with uncertainties); spectrum-level input, no transfer-function rows: the "
+        "JSON adds its GUM budget (fit and line shape; S with p, T, x), printed on stdout",
     )
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
     _profile_option(sp)

@@ -76,6 +76,14 @@ def test_linefit_spectrum_recovers_a_known_area(tmp_path, capsys):
     got = res["line_area"]
     # Gaussian noise of known sd: |A - A_true| < 4 u fails by chance once in 16 000
     assert abs(got["value"] - line_area_to_cm2(area)) < 4 * got["u"]
+    budget = res["budget"]
+    assert budget["input"] == res["input"]
+    names = [c["name"] for c in budget["line_area"]["components"]]
+    assert names == ["line fit (spectrum-level input)", "line-shape model (voigt vs sdvp)"]
+    assert budget["line_area"]["value"] == got["value_si"]
+    # S(296 K) two ways: the budget (reference_intensity_from_area) and the line fit's entry
+    # (A/N times intensity_ratio); equal up to rounding when both are right
+    assert budget["intensity"]["value"] == pytest.approx(res["intensity"]["value"], rel=1e-12)
     assert main(["linefit", str(out), "--spectrum", str(tmp_path), "-o", str(out)]) == 2
     assert "one of them" in capsys.readouterr().err
 
