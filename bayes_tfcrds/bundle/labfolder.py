@@ -290,6 +290,11 @@ def _columns(table: Table, spec: dict, kind: str, where: str, fields=None) -> di
     """Mapped columns of ``table`` in SI: field -> array (absent optional fields omitted)."""
     names = spec.get("columns", {})
     units = spec.get("units", {})
+    if not (isinstance(names, dict) and isinstance(units, dict)):
+        raise LabFolderError(
+            f'{LAB_TOML} [{where}]: columns and units are tables, e.g. columns = {{ nu = "nu_GHz" '
+            '}, units = { nu = "GHz" }'
+        )
     known = COLUMNS[kind]
     for key in (*names, *units):
         if key not in known:
@@ -327,13 +332,6 @@ def _whole(values, table: Table, column: str) -> np.ndarray:
             "averaged acquisitions"
         )
     return values.astype(np.int64)
-
-
-def _same_rows(n: int, table: Table, what: str) -> None:
-    if table.n_rows != n:
-        raise LabFolderError(
-            f"{table.path}: {table.n_rows} rows, but {what} has {n}; give one row per cavity mode"
-        )
 
 
 def _sample(doc: dict) -> Sample:

@@ -294,6 +294,20 @@ def test_written_bundles_carry_named_dimensions(source, tmp_path):
     assert load_bundle(out) == bundle
 
 
+def test_netcdf_reader_sees_the_named_dimensions(source, tmp_path):
+    """h5netcdf (the netCDF-4 reader behind xarray's h5netcdf engine) names every axis."""
+    h5netcdf = pytest.importorskip("h5netcdf")
+    bundle, _ = source
+    out = tmp_path / "b.h5"
+    save_bundle(bundle, out)
+    with h5netcdf.File(out, "r") as f:
+        rd = f["configs/D2/ringdowns"]
+        assert rd.variables["signal_v"].dimensions == ("nu_hz", "time_s")
+        assert rd.variables["n_avg"].dimensions == ("nu_hz",)
+        assert f["configs/D2/transfer_function"].variables["b12_v"].dimensions == ("f_hz",)
+        assert f["configs/D2/cmds"].variables["shift_hz"].dimensions == ("nu_hz",)
+
+
 def test_bundles_without_scales_still_read(good_bundle_path):
     # the conftest bundle is written with raw h5py as version 1 was: no scales, no time_s
     with h5py.File(good_bundle_path, "r") as f:
