@@ -411,10 +411,7 @@ def _ringdowns(folder: Path, spec: dict, where: str) -> dict:
                 f"lists {modes.n_rows} cavity modes; one row per mode in the order of the modes "
                 "table (transpose = true if your records are columns)"
             )
-        try:
-            out["signal_v"] = to_si(signal, spec.get("units", {}).get("signal"), "voltage")
-        except UnitError as exc:
-            raise LabFolderError(f"{LAB_TOML} [{where}] units.signal: {exc}") from None
+        out["signal_v"] = _signal_si(signal, spec, where)
     else:
         out["signal_v"], dt, t0 = _per_mode_records(folder, spec, modes, where, dt, t0)
     if dt is None or t0 is None:
@@ -425,6 +422,14 @@ def _ringdowns(folder: Path, spec: dict, where: str) -> dict:
         )
     out.update(dt_s=dt, t0_s=t0)
     return out
+
+
+def _signal_si(signal: np.ndarray, spec: dict, where: str) -> np.ndarray:
+    """Record values in volts, from the unit ``units.signal`` (V when absent)."""
+    try:
+        return to_si(signal, spec.get("units", {}).get("signal"), "voltage")
+    except UnitError as exc:
+        raise LabFolderError(f"{LAB_TOML} [{where}] units.signal: {exc}") from None
 
 
 def _natural(path: Path):
@@ -453,7 +458,7 @@ def _per_mode_records(folder: Path, spec: dict, modes: Table, where: str, dt, t0
     rows, time = [], None
     for path in paths:
         if path.suffix.lower() == ".npy":
-            rows.append(read_matrix_row(path))
+            rows.append(_signal_si(read_matrix_row(path), spec, where))
             continue
         table = read_table(path, spec.get("delimiter"))
         cols = _columns(table, spec, "ringdowns", where, fields=("signal", "time"))

@@ -187,6 +187,29 @@ def test_one_file_per_mode_with_a_time_column(tmp_path, source):
     assert got.t0_s == pytest.approx(rd.t0_s, rel=1e-15)
 
 
+def test_one_npy_per_mode_with_dt_and_t0_in_lab_toml(tmp_path, source):
+    bundle, folder = source
+    rd = bundle.configs["D2"].ringdowns
+    lab = tmp_path / "lab"
+    shutil.copytree(folder, lab)
+    (lab / "D2_ringdowns.csv").unlink()
+    for i, row in enumerate(rd.signal_v):
+        np.save(lab / f"r{i:02d}.npy", row)  # volts, float64
+    text = (lab / "lab.toml").read_text()
+    text = text.replace('signal = "D2_ringdowns.csv"', 'records = "r*.npy"')
+    (lab / "lab.toml").write_text(text.replace('signal = "mV" }', 'signal = "V" }'))
+    got = read_lab_folder(lab).configs["D2"].ringdowns
+    np.testing.assert_array_equal(got.signal_v, rd.signal_v)  # .npy holds the float64 itself
+    assert (got.dt_s, got.t0_s) == (rd.dt_s, rd.t0_s)
+    (lab / "lab.toml").write_text(text)  # the same records said to be in mV
+    np.testing.assert_allclose(
+        read_lab_folder(lab).configs["D2"].ringdowns.signal_v, 1e-3 * rd.signal_v, rtol=1e-15
+    )
+    (lab / "r11.npy").unlink()
+    with pytest.raises(LabFolderError, match=r"11 files match, but .*D2_modes.csv lists 12"):
+        read_lab_folder(lab)
+
+
 def test_npy_signal_and_npz_tables(tmp_path, source):
     bundle, folder = source
     cfg = bundle.configs["D2"]
