@@ -207,21 +207,26 @@ def cmd_linefit(args) -> int:
 
     from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line
 
-    bundle = _load(args.file)
-    config = _config(bundle, args.config)
+    if (args.file is None) == (args.spectrum is None):
+        raise Refused("give a bundle FILE or --spectrum LAB_DIR (one of them)", 2)
     try:
-        result = analyse_line(
-            bundle,
-            config,
-            method=args.method,
-            window=args.window,
-            t_cut_s=args.tcut[0],
-            profile_name=args.profile,
-            physical_bounds=args.shape_bounds == "physical",
-        )
+        if args.spectrum is not None:
+            result, record = _spectrum_line(args)
+        else:
+            bundle = _load(args.file)
+            result = analyse_line(
+                bundle,
+                _config(bundle, args.config),
+                method=args.method,
+                window=args.window,
+                t_cut_s=args.tcut[0],
+                profile_name=args.profile,
+                physical_bounds=args.shape_bounds == "physical",
+            )
+            record = result.to_dict()
     except (LineFitError, ValueError) as exc:
         return _fail(exc, 1)
-    atomic_write_text(Path(args.output), json.dumps(result.to_dict(), indent=2) + "\n")
+    atomic_write_text(Path(args.output), json.dumps(record, indent=2) + "\n")
     for line in _linefit_warnings(result, args.tcut[0]):
         _say(line)
     la, ra, q = result.line_area, result.reference_area, result.ratio
@@ -234,6 +239,23 @@ def cmd_linefit(args) -> int:
         )
     )
     return 0
+
+
+def _spectrum_line(args):
+    """linefit --spectrum: the line fit of a lab's tau(nu) or alpha(nu) and its budget (no H)."""
+    from bayes_tfcrds.bundle.labfolder import read_lab_spectrum
+    from bayes_tfcrds.fit.line_analysis import analyse_spectrum
+    from bayes_tfcrds.uncertainty.spectrum_budget import spectrum_budget
+
+    spectrum = read_lab_spectrum(args.spectrum)
+    result = analyse_spectrum(
+        spectrum, args.profile, physical_bounds=args.shape_bounds == "physical"
+    )
+    budget = spectrum_budget(result, spectrum.sample)
+    _say(f"note: {result.input_note}: no H, no t_cut; the budget holds the fit and the line shape")
+    print(budget.budget_a.to_markdown())
+    print(budget.budget_s.to_markdown())
+    return result, dict(result.to_dict(), budget=budget.to_dict())
 
 
 def _linefit_warnings(result, t_cut_s: float) -> list[str]:
@@ -268,6 +290,47 @@ def _linefit_warnings(result, t_cut_s: float) -> list[str]:
     if result.noise is not None and not result.noise.white:
         lines.append(f"warning: {result.noise.summary_line()}")
     return lines
+
+
+def cmd_import(args) -> int:
+    """A lab folder (lab.toml + CSV/TSV/NPY/NPZ) -> bundle; or write the worked example folder."""
+    from bayes_tfcrds.bundle.labfolder import (
+        LabFolderError,
+        import_lab_folder,
+        lab_folder_exists,
+        write_lab_folder,
+    )
+    from bayes_tfcrds.bundle.writer import save_bundle
+
+    if not args.example:
+        if args.output is None:
+            raise Refused("-o BUNDLE.h5 is required (the bundle to write)", 2)
+        try:
+            bundle = import_lab_folder(args.folder, args.output)
+        except LabFolderError as exc:
+            return _fail(exc, 1)
+        if not args.quiet:
+            _say(f"wrote {args.output}: configurations {list(bundle.configs)} from {args.folder}")
+        return 0
+    from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+
+    if lab_folder_exists(args.folder):
+        raise Refused(f"{args.folder} already holds a lab.toml; choose a new folder", 2)
+    # small (12 modes x 4096 samples): written and imported in about a second
+    campaign = Campaign(n_points=12, n_samples=4096)
+    bundle, truth = simulate_campaign(["letter-D2"], np.random.default_rng(args.seed), campaign)
+    files = write_lab_folder(bundle, args.folder)
+    if args.output is not None:
+        save_bundle(bundle, args.output, truth=truth)
+    if not args.quiet:
+        _say(
+            f"wrote {len(files)} files to {args.folder} (a simulated campaign in lab units, seed "
+            f"{args.seed})"
+            + (f" and the bundle they came from to {args.output}" if args.output else "")
+            + f"; import it: bayes-tfcrds import {args.folder} -o "
+            "bundle.h5"
+        )
+    return 0
 
 
 def cmd_demo(args) -> int:
@@ -487,9 +550,9 @@ def _common(sp, seed=0, note=""):
     return sp
 
 
-def _bundle_and_model(sp) -> None:
+def _bundle_and_model(sp, file_optional: bool = False) -> None:
     """The bundle, its configuration, and the ring-down model (method and window)."""
-    sp.add_argument("file")
+    sp.add_argument("file", nargs="?" if file_optional else None)
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument(
         "--method",
@@ -611,7 +674,14 @@ def _add_linefit(sub) -> None:
     sp = _common(
         sub.add_parser("linefit", help="fit a line profile to the CRDS spectrum and to CMDS")
     )
-    _bundle_and_model(sp)
+    _bundle_and_model(sp, file_optional=True)  # absent with --spectrum
+    sp.add_argument(
+        "--spectrum",
+        metavar="LAB_DIR",
+        help="instead of a bundle: a lab folder whose lab.toml has a [spectrum] table (tau or "
+        "alpha vs nu with uncertainties); spectrum-level input, no transfer-function rows: the "
+        "JSON adds its GUM budget (fit and line shape; S with p, T, x), printed on stdout",
+    )
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="the t_cut of the spectrum, s")
     _profile_option(sp)
     sp.add_argument(
@@ -701,6 +771,27 @@ def _add_discover(sub) -> None:
     sp.set_defaults(func=cmd_discover)
 
 
+def _add_import(sub) -> None:
+    """The ``import`` command's options."""
+    sp = _common(
+        sub.add_parser(
+            "import", help="a lab folder (lab.toml + ring-downs, beat note, CMDS) -> a bundle"
+        ),
+        note=" (import draws no random numbers; --example simulates with it)",
+    )
+    sp.add_argument("folder", help="lab folder holding lab.toml (README: Bringing your own data)")
+    sp.add_argument(
+        "--example",
+        action="store_true",
+        help="write a worked example lab folder (a small simulated campaign) to FOLDER instead",
+    )
+    sp.add_argument("--quiet", action="store_true", help="no summary line")
+    sp.add_argument(
+        "-o", "--output", help="bundle (HDF5) to write; with --example, the bundle it came from"
+    )
+    sp.set_defaults(func=cmd_import)
+
+
 def _add_demo(sub) -> None:
     """The ``demo`` command's options."""
     sp = _common(
@@ -762,6 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
         _add_discover,
         _add_demo,
         _add_compare,
+        _add_import,
     ):
         add(sub)
     return p

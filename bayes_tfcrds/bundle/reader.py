@@ -92,7 +92,7 @@ _SAMPLE_ATTRS = (
 )
 _CONFIG_ITEMS = ("transfer_function", "ringdowns", "cmds")
 _TF_ITEMS = ("f_hz", "b12_v", "b12_u_v", "i1_v", "i2_v")
-_RD_ITEMS = ("nu_hz", "signal_v", "n_avg", "noise_v")
+_RD_ITEMS = ("nu_hz", "signal_v", "n_avg", "noise_v", "time_s")
 _CMDS_ITEMS = ("nu_hz", "shift_hz", "shift_u_hz", "width_hz", "width_u_hz")
 
 
@@ -520,6 +520,7 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
             "the record has no sample at t >= 0 (after laser extinction): its last sample is at t "
             f"= {t0 + dt * (k - 1):.6g} s (t0_s = {t0!r}, dt_s = {dt!r}, k = {k})",
         )
+    _check_time_axis(g, p, dt, t0, k, r)
     if len(r.errors) > n0:
         return None
     data = RingdownData(nu, signal, dt, t0, n_avg, noise)
@@ -540,6 +541,32 @@ def _read_ringdowns(parent, cp: str, r: _Reader) -> RingdownData | None:
             "rail?)",
         )
     return data
+
+
+def _check_time_axis(g, p: str, dt, t0, k: int, r: _Reader) -> None:
+    """The optional ``time_s`` (the writer's dimension scale) should be t0_s + dt_s arange(k).
+
+    dt_s and t0_s define the time axis and every analysis uses them; a time_s that says
+    otherwise (t0_s edited after writing, say) is warned about, naming both, and not used.
+    """
+    if "time_s" not in g:
+        return
+    time = r.array(g, p, "time_s")
+    if time is None or dt is None or t0 is None:
+        return
+    if time.shape != (k,):
+        r.warn(
+            _join(p, "time_s"), f"has shape {time.shape}, not ({k},) like signal_v's rows; ignored"
+        )
+        return
+    off = np.abs(time - (t0 + dt * np.arange(k)))
+    if np.max(off) > 1e-6 * dt:  # far above the rounding of t0 + dt i (1e-16 relative)
+        i = int(np.argmax(off))
+        r.warn(
+            _join(p, "time_s"),
+            f"disagrees with t0_s + dt_s * index: time_s[{i}] = {_num(time[i])} s, expected "
+            f"{_num(t0 + dt * i)} s; t0_s and dt_s are used (correct or remove time_s)",
+        )
 
 
 def _check_beat_reference(p: str, b12, n: int | None, r: _Reader) -> None:

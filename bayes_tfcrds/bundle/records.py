@@ -412,6 +412,79 @@ class Bundle(_Record):
                 raise ValueError(f"configs key {key!r} differs from its Config.name {cfg.name!r}")
         _set(self, configs=configs)
 
+    @classmethod
+    def from_arrays(cls, sample, cavity, configs, description: str | None = None) -> Bundle:
+        """A bundle from plain values and numpy arrays, all SI (Hz, s, V, Pa, K).
+
+        ``sample`` and ``cavity`` are :class:`Sample`/:class:`Cavity` or dicts of their fields;
+        ``configs`` maps a name to a dict with ``ringdowns`` (the fields of
+        :class:`RingdownData`: nu_hz, signal_v, dt_s, t0_s, optional n_avg, noise_v) and,
+        optionally, ``transfer_function`` (f_hz, b12_v, i1_v, i2_v, b12_u_v), ``cmds``
+        (nu_hz, shift_hz, shift_u_hz, width_hz, width_u_hz) and ``description``. Example::
+
+            Bundle.from_arrays(
+                dict(molecule="CO", line="(3-0) R(23)", nu0_hz=1.9e14, pressure_pa=666.6,
+                     pressure_u_pa=0.3, temperature_k=296.0, temperature_u_k=0.03, mass_u=28.0),
+                dict(fsr_hz=203e6),
+                {"D1": dict(ringdowns=dict(nu_hz=nu, signal_v=v, dt_s=20e-9, t0_s=-2e-6))},
+            )
+
+        A misspelt field raises ValueError naming it and the known ones. ``save_bundle`` checks
+        the values against FORMAT.md when it writes the file.
+        """
+        built = {}
+        for name, spec in dict(configs).items():
+            if isinstance(spec, Config):
+                built[name] = spec
+                continue
+            where = f"configs[{name!r}]"
+            _known_keys(spec, ("ringdowns", "transfer_function", "cmds", "description"), where)
+            if "ringdowns" not in spec:
+                raise ValueError(f"{where} has no 'ringdowns' (nu_hz, signal_v, dt_s, t0_s)")
+            parts = {
+                key: _record(kind, spec.get(key), f"{where}[{key!r}]")
+                for key, kind in (
+                    ("ringdowns", RingdownData),
+                    ("transfer_function", TransferFunctionData),
+                    ("cmds", CmdsData),
+                )
+            }
+            built[name] = Config(name, description=spec.get("description"), **parts)
+        return cls(
+            _record(Sample, sample, "sample"),
+            _record(Cavity, cavity, "cavity"),
+            built,
+            description,
+        )
+
+
+def _known_keys(spec, known, where: str) -> None:
+    import difflib
+
+    for key in spec:
+        if key not in known:
+            hit = difflib.get_close_matches(str(key), known, n=1, cutoff=0.5)
+            raise ValueError(
+                f"{where}: unknown field {key!r}"
+                + (f" (did you mean {hit[0]!r}?)" if hit else "")
+                + f"; known: {', '.join(known)}"
+            )
+
+
+def _record(kind, spec, where: str):
+    """``spec`` as a ``kind`` record: already one, None, or a dict of its fields."""
+    if spec is None or isinstance(spec, kind):
+        return spec
+    _known_keys(spec, tuple(f.name for f in dataclasses.fields(kind)), where)
+    missing = [
+        f.name
+        for f in dataclasses.fields(kind)
+        if f.default is dataclasses.MISSING and f.name not in spec
+    ]
+    if missing:
+        raise ValueError(f"{where}: missing {', '.join(missing)}")
+    return kind(**spec)
+
 
 # --------------------------------------------------------------------------- violations
 

@@ -53,14 +53,34 @@ def _write_optional(group, name: str, data) -> None:
         _dataset(group, name, data)
 
 
+def _dimension_scales(g, scales: tuple[str, ...]) -> None:
+    """Make ``scales`` (1-D datasets of ``g``) HDF5 dimension scales and attach them by shape.
+
+    Each other dataset of ``g`` gets, per axis, the scale whose length matches in order (axis 0
+    the first, axis 1 the second), and the scale's name as the axis label, so netCDF-4/xarray
+    tools see named dimensions (nu_hz, time_s, f_hz) instead of phony ones.
+    """
+    for name in scales:
+        g[name].make_scale(name)
+    for name, ds in g.items():
+        if name in scales:
+            continue
+        for axis, scale in zip(range(ds.ndim), scales):
+            if ds.shape[axis] == g[scale].shape[0]:
+                ds.dims[axis].attach_scale(g[scale])
+                ds.dims[axis].label = scale
+
+
 def _write_ringdowns(cg, rd: RingdownData) -> None:
     g = _group(cg, "ringdowns")
     g.attrs["dt_s"] = float(rd.dt_s)
     g.attrs["t0_s"] = float(rd.t0_s)
     _dataset(g, "nu_hz", rd.nu_hz)
+    _dataset(g, "time_s", rd.time_s)  # the time axis (dimension scale); dt_s, t0_s define it
     _dataset(g, "signal_v", rd.signal_v)
     _write_optional(g, "n_avg", rd.n_avg)
     _write_optional(g, "noise_v", rd.noise_v)
+    _dimension_scales(g, ("nu_hz", "time_s"))
 
 
 def _write_tf(cg, tf: TransferFunctionData) -> None:
@@ -70,12 +90,14 @@ def _write_tf(cg, tf: TransferFunctionData) -> None:
     _write_optional(g, "b12_u_v", tf.b12_u_v)
     _dataset(g, "i1_v", np.float64(tf.i1_v) if np.ndim(tf.i1_v) == 0 else tf.i1_v)
     _dataset(g, "i2_v", np.float64(tf.i2_v) if np.ndim(tf.i2_v) == 0 else tf.i2_v)
+    _dimension_scales(g, ("f_hz",))
 
 
 def _write_cmds(cg, cm: CmdsData) -> None:
     g = _group(cg, "cmds")
     for f in dataclasses.fields(cm):
         _write_optional(g, f.name, getattr(cm, f.name))
+    _dimension_scales(g, ("nu_hz",))
 
 
 def _write_truth(group, truth: Mapping, where: str) -> None:

@@ -24,7 +24,7 @@ from bayes_tfcrds.fit.h_calibration import (
     fit_config,
 )
 from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
-from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
+from bayes_tfcrds.fit.spectrum import SpectrumData, check_repeats, cmds_spectrum, crds_spectrum
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
 
@@ -140,7 +140,7 @@ class LineAnalysis:
     configuration: str
     method: str
     window: str | None
-    t_cut_s: float
+    t_cut_s: float | None  # None for spectrum-level input
     profile: str
     line_fit: LineFit
     reference_fit: LineFit | None
@@ -153,6 +153,7 @@ class LineAnalysis:
     record_short_points: int
     calibration: object | None = None
     noise: object | None = None  # the NoiseDiagnosis of the ring-downs (fit.noise)
+    input_note: str | None = None  # what the input was, when not ring-down records
 
     @property
     def line_area(self) -> Quantity:
@@ -208,7 +209,7 @@ class LineAnalysis:
             "configuration": self.configuration,
             "method": self.method,
             "window": self.window,
-            "t_cut_s": float(self.t_cut_s),
+            "t_cut_s": None if self.t_cut_s is None else float(self.t_cut_s),
             "profile": self.profile,
             "line_area": _area_entry(lf.line_area, lf.line_area_u),
             "intensity": intensity_entry(lf.line_area, lf.line_area_u, n, self.temperature_k),
@@ -232,6 +233,8 @@ class LineAnalysis:
             "unconverged_points": self.unconverged_points,
             "record_short_points": self.record_short_points,
         }
+        if self.input_note is not None:
+            out["input"] = self.input_note
         if self.calibration is not None:
             p = self.calibration.params
             out["transfer_function"] = {
@@ -319,4 +322,68 @@ def analyse_line(
         ),
         calibration=calibration,
         noise=noise,
+    )
+
+
+SPECTRUM_LEVEL = "spectrum-level input: no transfer-function rows"
+
+
+def analyse_spectrum(
+    spectrum, profile_name: str = "qsdhcp", physical_bounds: bool = False
+) -> LineAnalysis:
+    """Line fit of a spectrum a lab kept instead of ring-down records: tau(nu) or alpha(nu).
+
+    ``spectrum`` has the fields of ``bundle.labfolder.LabSpectrum``: ``sample``, ``nu_hz`` (Hz),
+    ``quantity`` (``tau`` in s or ``alpha`` in 1/m), ``values``, ``u`` (standard
+    uncertainties, same unit) and ``source`` (the file). Decay times become 1/(c tau); alpha
+    is fitted as given, the empty-cavity loss (or any constant) in the fitted baseline. No
+    detection chain was modelled: the result says so (``input_note``), has no transfer-function
+    entry and no t_cut, and its u(A) holds the fit only.
+    """
+    nu = np.asarray(spectrum.nu_hz, float)
+    y, u = np.asarray(spectrum.values, float), np.asarray(spectrum.u, float)
+    bad = ~(np.isfinite(nu) & np.isfinite(y) & np.isfinite(u) & (u > 0))
+    if spectrum.quantity == "tau":
+        bad |= ~(y > 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise LineFitError(
+            f"{spectrum.source}: row {i + 1} of the data (nu = {nu[i]:.12g} Hz) has "
+            f"{spectrum.quantity} = {y[i]!r}, u = {u[i]!r}: values must be finite"
+            + (" and > 0" if spectrum.quantity == "tau" else "")
+            + " and uncertainties > 0; remove or fix the row"
+        )
+    label = f"{spectrum.quantity}(nu) from {spectrum.source}"
+    try:
+        if spectrum.quantity == "tau":
+            spec = crds_spectrum(nu, y, u, label=label)
+        else:
+            check_repeats(nu, y, u, label)
+            spec = SpectrumData("absorption", nu, y, u, label)
+    except ValueError as exc:
+        raise LineFitError(str(exc)) from exc
+    if nu.size < 8:
+        raise LineFitError(f"{spectrum.source}: only {nu.size} points; a line fit needs >= 8")
+    sample = spectrum.sample
+    lf = fit_line(
+        [spec], profile_name, doppler_of(sample), sample.nu0_hz, physical_bounds=physical_bounds
+    )
+    return LineAnalysis(
+        configuration=str(spectrum.source),
+        method="spectrum",
+        window=None,
+        t_cut_s=None,
+        profile=profile_name,
+        line_fit=lf,
+        reference_fit=None,
+        spectrum=spec,
+        number_density_m3=float(
+            number_density(sample.pressure_pa, sample.temperature_k, sample.mole_fraction)
+        ),
+        temperature_k=sample.temperature_k,
+        n_points=int(nu.size),
+        clipped_points=0,
+        unconverged_points=0,
+        record_short_points=0,
+        input_note=SPECTRUM_LEVEL,
     )

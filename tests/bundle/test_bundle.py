@@ -118,7 +118,8 @@ def test_writer_follows_contract_layout(good_bundle_path, tmp_path):
             "mass_u",
         }
         assert set(f["configs/D1"]) == {"transfer_function", "ringdowns", "cmds"}
-        assert set(f["configs/D1/ringdowns"]) == {"nu_hz", "signal_v", "n_avg", "noise_v"}
+        # time_s: the time axis as a dimension scale (FORMAT.md, optional)
+        assert set(f["configs/D1/ringdowns"]) == {"nu_hz", "time_s", "signal_v", "n_avg", "noise_v"}
         assert set(f["configs/D1/ringdowns"].attrs) == {"dt_s", "t0_s"}
         assert set(f["configs/D1/transfer_function"]) == set(R._TF_ITEMS)
         assert f["configs/D1/transfer_function/i2_v"].shape == ()
