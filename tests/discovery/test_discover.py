@@ -20,7 +20,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bayes_tfcrds.discovery.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
+from bayes_tfcrds.fit.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
 from bayes_tfcrds.discovery.workflow import (
     DEFAULT_THRESHOLD,
     ExperimentModel,
