@@ -40,7 +40,7 @@ Units: SI throughout (s, V, Hz, 1/m).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import fft as sfft
@@ -321,16 +321,17 @@ def bin_ringdowns(rd, k: int):
     exponential's shape by < (k dt / tau)^2 / 24 ~ 1e-4: enough to locate the minimum, which is
     then re-evaluated on the full record.
     """
-    from bayes_tfcrds.bundle.records import RingdownData
-
     n = rd.n_samples // k
     sig = np.asarray(rd.signal_v, float)[:, : n * k].reshape(rd.n_points, n, k).mean(-1)
-    return RingdownData(
-        nu_hz=rd.nu_hz,
+    # the record's own type (fit reads bundle records by their fields, never imports them); the
+    # noise colour is already in fit_noise_v
+    return replace(
+        rd,
         signal_v=sig,
         dt_s=rd.dt_s * k,
         t0_s=rd.t0_s + 0.5 * (k - 1) * rd.dt_s,
         noise_v=np.asarray(rd.fit_noise_v, float) / np.sqrt(k),
+        noise_kappa=None,
     )
 
 
