@@ -406,6 +406,9 @@ def cmd_budget(args) -> int:
             f"(BIC weight {form['weight_n_r_free']:.3g}); the budget keeps n_r = 2 and carries the "
             "difference in A as the 'H model form' row"
         )
+    for name, detail in (res.summary.get("instrument") or {}).items():
+        if detail.get("finding"):
+            _say(f"finding ({name}): {detail['finding']}; carried as the budget row '{name}'")
     if not res.passed:
         _say(f"FAILED: {res.status} (diagnostics: {res.summary['diagnostics']['runs']})")
         return 3

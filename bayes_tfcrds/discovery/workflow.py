@@ -3,7 +3,7 @@
 Start from a declared model (default plain CRDS with a Voigt line), compare it with every data
 block where model and data can disagree (transient residuals in time and frequency, tau and A
 against t_cut, spectrum residuals, the beat note, the CRDS-CMDS gap), then try each canonical
-effect as a model extension (:mod:`bayes_tfcrds.discovery.extensions`), score it by the drop of BIC
+effect as a model extension (:mod:`bayes_tfcrds.fit.extensions`), score it by the drop of BIC
 on the data block it acts on, add the best if its evidence passes a threshold, and repeat until none
 does.
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from bayes_tfcrds.discovery.extensions import (
+from bayes_tfcrds.fit.extensions import (
     SHARED,
     TransientSpec,
     fit_spectrum_extended,

@@ -1,8 +1,10 @@
 """Estimation from the data.
 
 The beat-note fit of H, ring-down decay times (CRDS, TF-CRDS), the Appendix B refinement of H on
-many transients, the H calibration that combines them, spectra, line-profile fits and the line
-analysis of one configuration.
+many transients, the H calibration that combines them, spectra, line-profile fits, the line
+analysis of one configuration, and the fits extended by instrument effects (static nonlinearity,
+baseline drift, extra exponentials, beating, etalon, neighbour line) that the budget sizes and
+discovery selects.
 
 May import: core, physics (bundle records are read by their fields, never imported).
 """

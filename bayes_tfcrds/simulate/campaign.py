@@ -196,6 +196,11 @@ class Campaign:
     pressure_u_pa: float = 0.333  # 0.05 % capacitance manometer
     temperature_k: float = 296.0
     temperature_u_k: float = 0.03
+    # the gauges' realised reading errors: the gas is at pressure_pa and temperature_k, the
+    # bundle's /sample reports them plus these (a calibration study draws them from the stated
+    # u to test the Type B rows; 0 in every other simulation)
+    pressure_error_pa: float = 0.0
+    temperature_error_k: float = 0.0
     fsr_hz: float = 203.0e6
     finesse: float = 41_000.0
     n_points: int = 101
@@ -600,9 +605,9 @@ def simulated_sample(campaign: Campaign, lt: LineTruth) -> Sample:
         molecule="CO",
         line="(3-0) R(23)",
         nu0_hz=lt.nu0_hz,
-        pressure_pa=campaign.pressure_pa,
+        pressure_pa=campaign.pressure_pa + campaign.pressure_error_pa,
         pressure_u_pa=campaign.pressure_u_pa,
-        temperature_k=campaign.temperature_k,
+        temperature_k=campaign.temperature_k + campaign.temperature_error_k,
         temperature_u_k=campaign.temperature_u_k,
         mole_fraction=1.0,
         mass_u=load_line().mass_u,
@@ -706,4 +711,10 @@ def simulate_campaign(
         "effects_on": ",".join(sorted(effects)),
         "configs": truth_cfg,
     }
+    if campaign.pressure_error_pa or campaign.temperature_error_k:
+        # the gas's own conditions, where /sample reports the gauges' readings
+        truth_dict["sample"] = {
+            "pressure_pa": campaign.pressure_pa,
+            "temperature_k": campaign.temperature_k,
+        }
     return bundle, truth_dict

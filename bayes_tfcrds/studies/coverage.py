@@ -52,8 +52,11 @@ LABELS = {
     "f_c": "H cutoff f_c",
     "A (u_c)": "A, full GUM u_c",
     "A/A_ref (u_c)": "A/A_ref, full GUM u_c",
+    "S (u_c)": "S(296 K), full GUM u_c",
 }
-RECORD_VERSION = 1
+#: the full-budget quantities (u_c with the Type B rows)
+UC_QUANTITIES = ("A (u_c)", "A/A_ref (u_c)", "S (u_c)")
+RECORD_VERSION = 2  # 2: drawn T, gauge reading errors, S (u_c)
 
 
 @dataclass(frozen=True)
@@ -61,7 +64,10 @@ class TruthDistribution:
     """Where each campaign's truth is drawn from (SI). ``U(a, b)``: uniform; ``logU``: log-uniform.
 
     Ranges straddle the letter's campaign (5 Torr, the line data, the presets): intensity S ~
-    S_ref U(0.9, 1.1); pressure ~ U(400, 933) Pa (3-7 Torr); Gamma0 ~ (line data at p) U(0.9, 1.1);
+    S_ref U(0.9, 1.1); pressure ~ U(400, 933) Pa (3-7 Torr); temperature ~ U(280, 310) K; the
+    gauges' reading errors drawn from their stated Type B distributions (pressure: normal with
+    the campaign's u(p); temperature: rectangular with the campaign's u(T)), so the budget's
+    Type B rows are tested too; Gamma0 ~ (line data at p) U(0.9, 1.1);
     Gamma2/Gamma0 ~ U(0.05, 0.20); nu_VC/Gamma0 ~ U(0.2, 0.7); base chain uniform over the presets,
     then f_c ~ f_c,preset logU(0.7, 1.4), A_r ~ A_r,preset U(0.85, 1.15), f_r ~ U(4, 8) MHz,
     Gamma_r ~ U(0.6, 0.8); single-acquisition noise ~ noise_preset U(0.75, 1.5).
@@ -69,6 +75,7 @@ class TruthDistribution:
 
     intensity_factor: tuple = (0.9, 1.1)
     pressure_pa: tuple = (400.0, 933.0)
+    temperature_k: tuple = (280.0, 310.0)
     gamma0_factor: tuple = (0.9, 1.1)
     gamma2_ratio: tuple = (0.05, 0.20)
     nu_vc_ratio: tuple = (0.2, 0.7)
@@ -87,6 +94,9 @@ class TruthDistribution:
                 f"S_ref x {u(self.intensity_factor)}, S_ref = 8.0603e-25 cm/molecule",
             ),
             ("pressure p (Pa)", u(self.pressure_pa)),
+            ("temperature T (K)", u(self.temperature_k)),
+            ("pressure reading error (Pa)", "N(0, u(p)^2), u(p) of the campaign"),
+            ("temperature reading error (K)", "rectangular, sd u(T) of the campaign"),
             ("Gamma0", f"(line data at p) x {u(self.gamma0_factor)}"),
             ("Gamma2/Gamma0", u(self.gamma2_ratio)),
             ("nu_VC/Gamma0", u(self.nu_vc_ratio)),
@@ -111,12 +121,21 @@ class CampaignDraw:
     nu_vc_ratio: float
     tf: TFParams
     noise_v: float
+    temperature_k: float = 296.0
+    pressure_error_pa: float = 0.0  # the gauges' realised reading errors (Type B inputs)
+    temperature_error_k: float = 0.0
 
 
 def draw_truth(
-    rng: np.random.Generator, presets, dist: TruthDistribution = TruthDistribution()
+    rng: np.random.Generator,
+    presets,
+    dist: TruthDistribution = TruthDistribution(),
+    campaign: Campaign = Campaign(),
 ) -> CampaignDraw:
-    """Draw one campaign's truth from ``dist`` (see :class:`TruthDistribution`)."""
+    """Draw one campaign's truth from ``dist`` (see :class:`TruthDistribution`).
+
+    The reading errors use the campaign's stated u(p) and u(T).
+    """
     line = load_line()
     preset = str(presets[int(rng.integers(len(presets)))])
     base = PRESETS[preset]
@@ -141,6 +160,9 @@ def draw_truth(
         nu_vc_ratio=nvr,
         tf=tf,
         noise_v=base.noise_v * uni(dist.noise_factor),
+        temperature_k=uni(dist.temperature_k),
+        pressure_error_pa=float(campaign.pressure_u_pa * rng.standard_normal()),
+        temperature_error_k=float(campaign.temperature_u_k * np.sqrt(3.0) * rng.uniform(-1, 1)),
     )
 
 
@@ -157,6 +179,7 @@ def preset_draw(preset: str, campaign: Campaign = Campaign()) -> CampaignDraw:
         nu_vc_ratio=shape["nu_vc_hz"] / shape["gamma0_hz"],
         tf=PRESETS[preset].tf,
         noise_v=PRESETS[preset].noise_v,
+        temperature_k=campaign.temperature_k,
     )
 
 
@@ -186,7 +209,13 @@ def simulate_draw(draw: CampaignDraw, rng: np.random.Generator, campaign: Campai
     :func:`simulate_campaign` for the draw's base preset, with the drawn line, chain and noise.
     Returns ``(Bundle, truth_dict)`` like it.
     """
-    camp = replace(campaign, pressure_pa=draw.pressure_pa)
+    camp = replace(
+        campaign,
+        pressure_pa=draw.pressure_pa,
+        temperature_k=draw.temperature_k,
+        pressure_error_pa=draw.pressure_error_pa,
+        temperature_error_k=draw.temperature_error_k,
+    )
     return simulate_campaign(
         [draw.preset],
         rng,
@@ -264,6 +293,13 @@ def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
         ),  # CMDS measures the same line: truth 1
         "A (u_c)": _gaussian(a_true, a_hat, s["line_area"]["u_si"]),
         "A/A_ref (u_c)": _gaussian(1.0, s["ratio"]["value"], s["ratio"]["u"]),
+        # S(T_ref) through the whole measurement model: A, the gauges' readings (with their
+        # drawn errors), Q(T), E'', at the campaign's drawn temperature
+        "S (u_c)": _gaussian(
+            truth["line"]["intensity_ref_cm_per_molecule"],
+            s["intensity"]["value"],
+            s["intensity"]["u"],
+        ),
     }
     rows = [r for r in res.tau_table if np.isclose(r[1], options.t_cut_s)]
     nu = np.array([r[0] for r in rows])
@@ -312,7 +348,7 @@ def run_campaign(settings: CoverageSettings, index: int) -> dict:
     """Draw, simulate and analyse campaign ``index``; its numbers depend on (settings, index)."""
     ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
     g_draw, g_sim, g_fit = (np.random.default_rng(c) for c in ss.spawn(3))
-    draw = draw_truth(g_draw, settings.presets, settings.dist)
+    draw = draw_truth(g_draw, settings.presets, settings.dist, settings.campaign)
     bundle, truth = simulate_draw(draw, g_sim, settings.campaign)
     rec = {
         "index": index,
@@ -442,7 +478,7 @@ def beat_note_mode(settings: CoverageSettings, index: int) -> dict:
 
     ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
     g_draw, g_sim, _ = (np.random.default_rng(c) for c in ss.spawn(3))
-    draw = draw_truth(g_draw, settings.presets, settings.dist)
+    draw = draw_truth(g_draw, settings.presets, settings.dist, settings.campaign)
     bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
     cfg = next(iter(bundle.configs.values()))
     fit = beat_note_fit(cfg, free=BEAT_FREE)
@@ -654,6 +690,17 @@ def _coverage_checks(sums: dict, checks: dict, recs: list, bad: list, n: int, re
             f"{100 * s['coverage_68']:.1f} / {100 * s['coverage_95']:.1f} %",
             f"rank chi2 p = {s['rank_p']:.3f}",
         )
+    s_ref = sums["S (u_c)"]
+    rep.add_summary(
+        "S(296 K): 68 % / 95 % coverage (full u_c)",
+        f"{100 * s_ref['coverage_68']:.1f} / {100 * s_ref['coverage_95']:.1f} %",
+        "T drawn over 280-310 K, the gauges' reading errors drawn from their Type B u",
+    )
+    rep.add_diagnostic(
+        "S(296 K): 95 % coverage within 95 +/- 3 % (issue #17)",
+        abs(s_ref["coverage_95"] - 0.95) <= 0.03,
+        f"{100 * s_ref['coverage_95']:.1f} %",
+    )
     rep.add_diagnostic(
         "every campaign analysed",
         not bad,
@@ -843,7 +890,7 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
     bad = [r for r in recs if r.get("status") != "ok"]
     bins = 10 if len(ok) >= 100 else 5
     main_keys = list(QUANTITIES)
-    sums = {k: summarise(recs, k, bins=bins) for k in main_keys + ["A (u_c)", "A/A_ref (u_c)"]}
+    sums = {k: summarise(recs, k, bins=bins) for k in main_keys + list(UC_QUANTITIES)}
     checks = {k: check(sums[k]) for k in main_keys}
     n = len(ok)
     post = settings.options.posterior

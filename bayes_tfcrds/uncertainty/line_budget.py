@@ -55,6 +55,7 @@ from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.physics.linedata import load_line
+from bayes_tfcrds.uncertainty.instrument import cmds_type_b, instrument_rows
 from bayes_tfcrds.uncertainty.posterior_steps import (
     IS_ESS_MIN,
     fit_transients_noise,
@@ -632,11 +633,12 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
     return comp, record
 
 
-def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
+def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -> Budget:
     """Step 7.
 
     The GUM budget of A: ring-down noise, the H rows (``h_rows`` = (components, correlations), empty
-    for CRDS), the t_cut choice and the line-shape model.
+    for CRDS), the t_cut choice, the line-shape model and the instrument rows (``instrument``:
+    InstrumentRow list).
     """
     comps = [
         Component(
@@ -672,6 +674,7 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
             note="Type B: rectangular over the difference of the two profiles' A",
         )
     )
+    comps += [row.component for row in instrument]
     return Budget(
         quantity="line area A",
         value=float(np.mean(a_total)),
@@ -759,6 +762,7 @@ def _budget_ratio(a_hat: float, u_a: float, a_ref) -> Budget | None:
                 "Hz/m",
                 note="Type A: CMDS posterior",
             ),
+            cmds_type_b(a_ref_hat, r),
         ),
     )
 
@@ -1049,10 +1053,12 @@ def _budget(inp: _Inputs) -> BudgetResult:
     if options.method == "tf-crds":  # 6b. the form of the H model
         form_row, form = _h_model_form(inp, dt, beat, refined)
         h_rows = (h_rows[0] + [form_row], h_rows[1])
-    budget_a = _budget_a(options, dt, a_total, u_dir, h_rows)  # 7-9. budgets
+    instrument = instrument_rows(config, options, h_star, dt.spec, inp.gd, inp.nu_ref)  # 6c.
+    budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument)  # 7-9. budgets
     budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u)
     budget_ratio = _budget_ratio(budget_a.value, budget_a.combined_u, a_ref)
     summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, h_star)
+    summary["instrument"] = {row.component.name: row.detail for row in instrument}
     if refined is not None:
         summary["transfer_function"]["refinement"] = _refinement_summary(refined)
     if form is not None:

@@ -41,6 +41,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         md += "\n\n" + refinement_markdown(refinement)
     if result.summary.get("noise"):
         md += "\n\n" + noise_markdown(result.summary["noise"])
+    if result.summary.get("instrument"):
+        md += "\n\n" + instrument_markdown(result.summary["instrument"])
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
     atomic_write_text(out / "budget.csv", mark + result.budget_a.to_csv())
@@ -74,6 +76,30 @@ def failed_banner(result: BudgetResult) -> str:
         f"FAILED: {result.status}. These numbers did not pass the convergence gates and must not "
         "be used; rerun with more steps (--steps, --max-steps) to resume the chains"
     )
+
+
+def instrument_markdown(instrument: dict) -> str:
+    """The 'Instrument rows' section: what sized each data-sized instrument row of u(A)."""
+    lines = [
+        "## Instrument rows",
+        "",
+        "Each row asks the data how large an effect the analysis model leaves out could be "
+        "(static nonlinearity V' = V + beta V^2/1 V fitted on the ring-downs; baseline slope and "
+        "etalon by the BIC weight w of the line fit with them). A finding means the data ask for "
+        "the effect.",
+        "",
+        "| row | sized by | change of A (Hz/m) | finding |",
+        "|---|---|---|---|",
+    ]
+    for name, d in instrument.items():
+        if "beta" in d:
+            by = f"beta = {d['beta']:.3g} +/- {d['u_beta']:.2g}"
+        else:
+            by = f"w = {d['weight_extended']:.3g}"
+        lines.append(
+            f"| {name} | {by} | {d['delta_a_hz_per_m']:+.3g} | {d.get('finding') or '-'} |"
+        )
+    return "\n".join(lines)
 
 
 def noise_markdown(noise: dict) -> str:

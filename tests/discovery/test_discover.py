@@ -20,13 +20,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from bayes_tfcrds.discovery.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
 from bayes_tfcrds.discovery.workflow import (
     DEFAULT_THRESHOLD,
     ExperimentModel,
     discover,
     parse_model,
 )
+from bayes_tfcrds.fit.extensions import TransientSpec, fit_transient_rows, invert_nonlinearity
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 from tests.discovery.hidden_cases import HIDDEN_CASES
 

@@ -149,7 +149,7 @@ def test_beat_note_phase_ambiguity_is_resolved_by_the_ring_downs():
     )
     ss = np.random.SeedSequence(settings.seed, spawn_key=(143,))
     g_draw, g_sim, _ = (np.random.default_rng(c) for c in ss.spawn(3))
-    draw = draw_truth(g_draw, settings.presets, settings.dist)
+    draw = draw_truth(g_draw, settings.presets, settings.dist, settings.campaign)
     bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
     cfg = next(iter(bundle.configs.values()))
     # both modes, fitted to the beat note alone: the mirror fits |H| as well or better

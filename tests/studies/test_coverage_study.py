@@ -150,3 +150,37 @@ def test_study_file_is_valid():
 
     s = load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
     assert s.kind == "coverage" and s.n_campaigns >= 200 and s.posterior == "laplace"
+
+
+def test_calibration_draws_temperature_and_the_gauges_reading_errors():
+    """T over 280-310 K; the pressure reading error is N(0, u(p)^2) and the temperature's is
+    rectangular with sd u(T) (its half-width sqrt(3) u(T) never exceeded). 4000 draws: the sd
+    of the sample sd is about 1.1 % (normal) and 0.7 % (rectangular), so 5 % bounds cannot fail
+    by chance and fail if either error is dropped or mis-scaled by sqrt(3)."""
+    rng = np.random.default_rng(1)
+    camp = Campaign()
+    draws = [cs.draw_truth(rng, tuple(PRESETS), cs.TruthDistribution(), camp) for _ in range(4000)]
+    t = np.array([d.temperature_k for d in draws])
+    dp = np.array([d.pressure_error_pa for d in draws])
+    dt = np.array([d.temperature_error_k for d in draws])
+    assert 280.0 <= t.min() and t.max() <= 310.0 and np.ptp(t) > 25.0
+    assert np.std(dp) == pytest.approx(camp.pressure_u_pa, rel=0.05)
+    assert np.std(dt) == pytest.approx(camp.temperature_u_k, rel=0.05)
+    assert np.max(np.abs(dt)) <= np.sqrt(3.0) * camp.temperature_u_k
+
+
+def test_the_bundle_reports_the_gauges_readings_and_the_truth_the_gas():
+    """A campaign with reading errors: /sample holds p + dp and T + dT, the truth the gas's own
+    p and T, and the simulated line (its area) follows the gas, not the readings."""
+    camp = replace(Campaign(), n_points=11, pressure_error_pa=0.5, temperature_error_k=0.04)
+    hot = replace(camp, temperature_k=305.0)
+    b, truth = simulate_campaign(["letter-D1"], np.random.default_rng(2), hot)
+    assert b.sample.pressure_pa == pytest.approx(hot.pressure_pa + 0.5, rel=1e-15)
+    assert b.sample.temperature_k == pytest.approx(305.04, rel=1e-15)
+    assert truth["sample"] == {"pressure_pa": hot.pressure_pa, "temperature_k": 305.0}
+    _, exact = simulate_campaign(
+        ["letter-D1"],
+        np.random.default_rng(2),
+        replace(hot, pressure_error_pa=0.0, temperature_error_k=0.0),
+    )
+    assert truth["line"]["line_area_hz_per_m"] == exact["line"]["line_area_hz_per_m"]

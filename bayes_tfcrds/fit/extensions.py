@@ -1,6 +1,8 @@
-"""Model extensions the discovery workflow can switch on.
+"""Model extensions: the analysis model with one instrument effect switched on.
 
-Transient-level and spectrum-level fitters.
+Transient-level and spectrum-level fitters. The discovery workflow selects among them; the budget
+uses the static nonlinearity, the spectral baseline slope and the etalon to size its instrument
+rows from the data.
 
 Each canonical effect of :mod:`bayes_tfcrds.simulate` has a fitter here that adds its physics to
 the analysis model, with its own parameters (charged for by the discovery's evidence):
@@ -29,15 +31,16 @@ small extension's).
 
 Spectrum level (:func:`fit_spectrum_extended`): the line profile follows the model (voigt,
 sdvp for ``speed_dependence``, rautian for ``hard_collisions``, qsdhcp for both), plus
-``etalon`` (a sinusoidal alpha baseline: amplitude, period, phase) and ``neighbour_line`` (a
-second line of the same shape: offset and area ratio).
+``etalon`` (a sinusoidal alpha baseline: amplitude, period, phase), ``neighbour_line`` (a
+second line of the same shape: offset and area ratio) and ``baseline_slope`` (a linear alpha
+baseline in the detuning; the dispersion model always has its slope).
 
 Units: SI throughout (s, V, Hz, 1/m).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import fft as sfft
@@ -318,16 +321,17 @@ def bin_ringdowns(rd, k: int):
     exponential's shape by < (k dt / tau)^2 / 24 ~ 1e-4: enough to locate the minimum, which is
     then re-evaluated on the full record.
     """
-    from bayes_tfcrds.bundle.records import RingdownData
-
     n = rd.n_samples // k
     sig = np.asarray(rd.signal_v, float)[:, : n * k].reshape(rd.n_points, n, k).mean(-1)
-    return RingdownData(
-        nu_hz=rd.nu_hz,
+    # the record's own type (fit reads bundle records by their fields, never imports them); the
+    # noise colour is already in fit_noise_v
+    return replace(
+        rd,
         signal_v=sig,
         dt_s=rd.dt_s * k,
         t0_s=rd.t0_s + 0.5 * (k - 1) * rd.dt_s,
         noise_v=np.asarray(rd.fit_noise_v, float) / np.sqrt(k),
+        noise_kappa=None,
     )
 
 
@@ -568,7 +572,7 @@ class SpectrumFit:
 
 def _names(kind, profile_name, extras):
     names = ["line_area", "position_offset_hz", *PROFILE_SHAPE_FREE[profile_name], "baseline"]
-    if kind == "dispersion":
+    if kind == "dispersion" or "baseline_slope" in extras:
         names.append("slope")
     if "etalon" in extras:
         names += ["etalon_amplitude_per_m", "etalon_period_hz", "etalon_phase_rad"]
@@ -593,7 +597,7 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
             **shape,
         )
     if kind == "absorption":
-        y = p["line_area"] * g.real + p["baseline"]
+        y = p["line_area"] * g.real + p["baseline"] + p.get("slope", 0.0) * det
     else:
         y = C * p["line_area"] * g.imag / (4 * np.pi) + p["baseline"] + p["slope"] * det
     if "etalon_amplitude_per_m" in p and kind == "absorption":
