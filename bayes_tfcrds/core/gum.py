@@ -34,6 +34,7 @@ __all__ = [
     "COLUMNS",
     "normalized_error",
     "ratio",
+    "dof_from_relative_u",
     "monte_carlo_check",
     "format_uncertainty",
     "format_value",
@@ -366,6 +367,18 @@ class Budget:
             "effective_dof": _json_float(self.effective_dof),
             "expanded_k2": self.expanded(2.0),
         }
+
+
+def dof_from_relative_u(relative_u: float) -> float:
+    """Degrees of freedom of a Type B u from the judged relative uncertainty of u (GUM Eq. G.3).
+
+    nu = (1/2) (Delta u / u)^-2: a u judged reliable to 25 % has 8 dof, to 50 % 2 dof, to 10 %
+    50 dof; 0 gives inf (u taken as exact).
+    """
+    r = float(relative_u)
+    if not r >= 0:
+        raise ValueError(f"relative uncertainty of u must be >= 0, got {r}")
+    return math.inf if r == 0.0 else 0.5 / (r * r)
 
 
 # --- comparison helpers ----------------------------------------------------------------
