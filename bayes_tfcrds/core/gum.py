@@ -23,7 +23,7 @@ import csv
 import io
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
@@ -231,6 +231,34 @@ class Budget:
         """Expanded uncertainty U = k u_c(y), output unit (GUM 6.2.1)."""
         return float(k) * self.combined_u
 
+    def in_units(self, conversions: dict[str, tuple[str, float]]) -> Budget:
+        """The same budget with units converted, e.g. {"Hz/m": ("cm^-2", 1/(100 c))}.
+
+        ``conversions`` maps a unit to (new unit, factor: new = factor x old). Inputs in a listed
+        unit get value and u scaled, the output too, and every c_i follows (c_i x f_out/f_in);
+        shares, dof and correlations are unchanged (dimensionless).
+        """
+
+        def conv(unit):
+            return conversions.get(unit, (unit, 1.0))
+
+        out_unit, f_out = conv(self.unit)
+        comps = []
+        for c in self.components:
+            unit, f_in = conv(c.unit)
+            comps.append(
+                replace(
+                    c,
+                    value=None if c.value is None else c.value * f_in,
+                    u=c.u * f_in,
+                    unit=unit,
+                    sensitivity=c.sensitivity * f_out / f_in,
+                )
+            )
+        return Budget(
+            self.quantity, self.value * f_out, out_unit, tuple(comps), dict(self.correlations)
+        )
+
     # --- reporting ---------------------------------------------------------------------
     def to_rows(self) -> list[dict]:
         """One dict per component keyed by :data:`COLUMNS`, raw (unformatted) numbers.
@@ -366,6 +394,7 @@ class Budget:
             "combined_u": self.combined_u,
             "effective_dof": _json_float(self.effective_dof),
             "expanded_k2": self.expanded(2.0),
+            "k_95": self.coverage_factor(0.95) if self.effective_dof > 0 else None,
         }
 
 

@@ -129,11 +129,17 @@ def _gum_entry(budget: Budget, scale: float = 1.0) -> dict:
     }
 
 
+def edge_units(budget: Budget) -> Budget:
+    """The budget as every output shows it: line areas (Hz/m inside) in cm^-2."""
+    return budget.in_units({"Hz/m": ("cm^-2", float(line_area_to_cm2(1.0)))})
+
+
 def add_to_summary(summary: dict, budgets: dict, mc: BudgetMonteCarlo | None) -> None:
     """GUM dof, k, U and the Monte Carlo result into the budget.json entries, in their units.
 
     ``budgets``: {"line_area": Budget of A (Hz/m), "intensity": of S, "ratio": of A/A_ref or
-    None}; A's entries in cm^-2 like the rest of ``line_area``.
+    None}; A's entries in cm^-2 like the rest of ``line_area``. The full GUM tables go under
+    ``gum_budgets`` (Budget.to_dict, line areas in cm^-2), one per quantity.
     """
     to_cm2 = float(line_area_to_cm2(1.0))
     scales = {
@@ -148,5 +154,8 @@ def add_to_summary(summary: dict, budgets: dict, mc: BudgetMonteCarlo | None) ->
         entry.update(_gum_entry(budget, scale))
         res = None if mc is None else getattr(mc, key)
         entry["monte_carlo"] = None if res is None else _entry(res, scale, unit)
+    summary["gum_budgets"] = {
+        key: edge_units(b).to_dict() for key, b in budgets.items() if b is not None
+    }
     if mc is not None:
         summary["monte_carlo_inputs"] = mc.inputs

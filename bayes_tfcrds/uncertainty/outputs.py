@@ -1,4 +1,10 @@
-"""The files of a budget run: budget.json, GUM tables, decay-time posteriors, netCDF, corners."""
+"""The files of a budget run: budget.json, GUM tables, decay-time posteriors, netCDF, corners.
+
+One unit per quantity in every file: line areas A, A_ref in cm^-2 (SI Hz/m in ``*_si`` fields and
+columns), S(T_ref) in cm/molecule, A/A_ref in 1. budget.json's structure (for a budget that
+imports this one, see :func:`component_from_result`) is described in data/FORMAT.md, section
+"Outputs of `budget`".
+"""
 
 from __future__ import annotations
 
@@ -6,13 +12,15 @@ import csv
 import io
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from bayes_tfcrds.core.constants import line_area_to_cm2
-from bayes_tfcrds.core.gum import Budget, format_uncertainty, format_value
+from bayes_tfcrds.core.gum import Budget, Component, format_uncertainty, format_value
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.uncertainty.line_budget import BudgetResult
+from bayes_tfcrds.uncertainty.monte_carlo import edge_units
 
 
 def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list:
@@ -39,7 +47,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
     )
     mcs = _monte_carlo_results(result)
     md = "\n\n".join(
-        f"## {b.quantity}\n\n{b.to_markdown()}" + monte_carlo_markdown(mc, b.unit)
+        f"## {b.quantity}\n\n{edge_units(b).to_markdown()}"
+        + monte_carlo_markdown(mc, *_to_cm2(b.unit))
         for b, mc in zip(tables, mcs)
     )
     banner = failed_banner(result)
@@ -136,13 +145,23 @@ def _monte_carlo_results(result: BudgetResult) -> list:
     return [mc.line_area, mc.intensity, mc.ratio]
 
 
-def monte_carlo_markdown(mc, unit: str) -> str:
-    """The JCGM 101 line under a budget table: y, u, 95 % interval, k, trials, stability."""
+def monte_carlo_markdown(mc, unit: str, scale: float = 1.0) -> str:
+    """The JCGM 101 line under a budget table: y, u, 95 % interval, k, trials, stability.
+
+    ``mc`` in the budget's SI unit; shown in ``unit`` (= ``scale`` x SI).
+    """
     if mc is None:
         return ""
+    mc = replace(
+        mc,
+        value=mc.value * scale,
+        u=mc.u * scale,
+        interval=(mc.interval[0] * scale, mc.interval[1] * scale),
+        tolerance=mc.tolerance * scale,
+    )
     state = "stabilised" if mc.stabilised else "**not stabilised** (trial cap reached)"
     return (
-        f"JCGM 101 adaptive Monte Carlo ({mc.trials} trials, {state} at delta = "
+        f"\nJCGM 101 adaptive Monte Carlo ({mc.trials} trials, {state} at delta = "
         f"{mc.tolerance:.1g} {unit}): y = {format_value(mc.value, mc.u)} {unit}, u = "
         f"{format_uncertainty(mc.u)} {unit}, 95 % interval [{format_value(mc.interval[0], mc.u)}"
         f", {format_value(mc.interval[1], mc.u)}] {unit}, k = half-width/u = {mc.k:.3f} "
@@ -288,3 +307,29 @@ def budget_csv(result: BudgetResult) -> str:
     for r in rows:
         w.writerow([_cell(r.get(k)) for k in CSV_COLUMNS])
     return buf.getvalue()
+
+
+def component_from_result(entry: dict, name: str, sensitivity: float, note: str = "") -> Component:
+    """A row of another GUM budget from one quantity of a budget.json (``line_area``, ...).
+
+    ``entry``: e.g. ``json.load(f)["intensity"]`` with ``value``, ``u``, ``unit`` and
+    ``effective_dof`` ("inf" for infinite); ``sensitivity``: c_i of the importing budget per
+    that unit. The importing budget then carries u and nu_eff on (GUM G.4), and its Monte Carlo
+    can use ``entry["monte_carlo"]`` (y, u, interval) as the input's summary.
+    """
+    missing = [k for k in ("value", "u", "unit") if entry.get(k) is None]
+    if missing:
+        raise ValueError(
+            f"budget.json entry for {name!r} lacks {missing}: was the budget run failed? "
+            "(its numbers are then under 'unconverged_estimates' and must not be used)"
+        )
+    dof = entry.get("effective_dof", "inf")
+    return Component(
+        name,
+        float(entry["value"]),
+        float(entry["u"]),
+        float(sensitivity),
+        entry["unit"],
+        dof=math.inf if dof in ("inf", None) else float(dof),
+        note=note or "imported from budget.json (combined u and effective dof of that budget)",
+    )

@@ -95,6 +95,16 @@ def _check_monte_carlo_and_csv(res, out):
     c, u = float(s_in_a["sensitivity_coefficient"]), float(s_in_a["standard_uncertainty"])
     assert abs(c) * u == pytest.approx(float(s_in_a["contribution"]), rel=1e-12)
     assert all(r["dof"] for r in rows if r["kind"] == "input")
+    # another budget imports S: 2 S (c = 2) has twice its u and the same nu_eff (one input)
+    from bayes_tfcrds.core.gum import Budget
+    from bayes_tfcrds.uncertainty.outputs import component_from_result
+
+    row = component_from_result(s["intensity"], "S(296 K) of run 1", 2.0)
+    twice = Budget("2 S", 2 * row.value, "cm/molecule", (row,))
+    assert twice.combined_u == pytest.approx(2 * s["intensity"]["u"], rel=1e-12)
+    assert twice.effective_dof == pytest.approx(s["intensity"]["effective_dof"], rel=1e-12)
+    table = s["gum_budgets"]["line_area"]
+    assert table["unit"] == "cm^-2" and table["combined_u"] == pytest.approx(s["line_area"]["u"])
 
 
 def test_linefit_reports_the_same_s_at_296_k():
