@@ -18,7 +18,10 @@ Pipeline (each step a function of the bundle, the options and the seed):
    shared records), the t_cut choice and the line-shape model choice for u(A); pressure,
    temperature and mole fraction for the line intensity S at T_ref = 296 K (from S(T) = A/N at
    the sample's T through Q(T), E'' and stimulated emission); the CMDS reference for A/A_ref
-   and E_n.
+   and E_n. Every row carries its degrees of freedom (Type A: n_points - n_params of its fit;
+   Type B: GUM G.4.2), so nu_eff and k = t_95(nu_eff) are those of the data.
+5. **JCGM 101 Monte Carlo** of the same model for A, S and A/A_ref (:mod:`.monte_carlo`): the
+   coverage interval and its k beside the GUM result.
 
 The samplers' convergence gates are part of the result: a run that fails them is reported as
 failed, and its numbers are never given as a result.
