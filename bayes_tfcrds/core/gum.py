@@ -23,7 +23,7 @@ import csv
 import io
 import math
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
@@ -34,6 +34,7 @@ __all__ = [
     "COLUMNS",
     "normalized_error",
     "ratio",
+    "dof_from_relative_u",
     "monte_carlo_check",
     "format_uncertainty",
     "format_value",
@@ -230,6 +231,34 @@ class Budget:
         """Expanded uncertainty U = k u_c(y), output unit (GUM 6.2.1)."""
         return float(k) * self.combined_u
 
+    def in_units(self, conversions: dict[str, tuple[str, float]]) -> Budget:
+        """The same budget with units converted, e.g. {"Hz/m": ("cm^-2", 1/(100 c))}.
+
+        ``conversions`` maps a unit to (new unit, factor: new = factor x old). Inputs in a listed
+        unit get value and u scaled, the output too, and every c_i follows (c_i x f_out/f_in);
+        shares, dof and correlations are unchanged (dimensionless).
+        """
+
+        def conv(unit):
+            return conversions.get(unit, (unit, 1.0))
+
+        out_unit, f_out = conv(self.unit)
+        comps = []
+        for c in self.components:
+            unit, f_in = conv(c.unit)
+            comps.append(
+                replace(
+                    c,
+                    value=None if c.value is None else c.value * f_in,
+                    u=c.u * f_in,
+                    unit=unit,
+                    sensitivity=c.sensitivity * f_out / f_in,
+                )
+            )
+        return Budget(
+            self.quantity, self.value * f_out, out_unit, tuple(comps), dict(self.correlations)
+        )
+
     # --- reporting ---------------------------------------------------------------------
     def to_rows(self) -> list[dict]:
         """One dict per component keyed by :data:`COLUMNS`, raw (unformatted) numbers.
@@ -365,7 +394,20 @@ class Budget:
             "combined_u": self.combined_u,
             "effective_dof": _json_float(self.effective_dof),
             "expanded_k2": self.expanded(2.0),
+            "k_95": self.coverage_factor(0.95) if self.effective_dof > 0 else None,
         }
+
+
+def dof_from_relative_u(relative_u: float) -> float:
+    """Degrees of freedom of a Type B u from the judged relative uncertainty of u (GUM Eq. G.3).
+
+    nu = (1/2) (Delta u / u)^-2: a u judged reliable to 25 % has 8 dof, to 50 % 2 dof, to 10 %
+    50 dof; 0 gives inf (u taken as exact).
+    """
+    r = float(relative_u)
+    if not r >= 0:
+        raise ValueError(f"relative uncertainty of u must be >= 0, got {r}")
+    return math.inf if r == 0.0 else 0.5 / (r * r)
 
 
 # --- comparison helpers ----------------------------------------------------------------

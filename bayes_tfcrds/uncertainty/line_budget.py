@@ -18,7 +18,10 @@ Pipeline (each step a function of the bundle, the options and the seed):
    shared records), the t_cut choice and the line-shape model choice for u(A); pressure,
    temperature and mole fraction for the line intensity S at T_ref = 296 K (from S(T) = A/N at
    the sample's T through Q(T), E'' and stimulated emission); the CMDS reference for A/A_ref
-   and E_n.
+   and E_n. Every row carries its degrees of freedom (Type A: n_points - n_params of its fit;
+   Type B: GUM G.4.2), so nu_eff and k = t_95(nu_eff) are those of the data.
+5. **JCGM 101 Monte Carlo** of the same model for A, S and A/A_ref (:mod:`.monte_carlo`): the
+   coverage interval and its k beside the GUM result.
 
 The samplers' convergence gates are part of the result: a run that fails them is reported as
 failed, and its numbers are never given as a result.
@@ -38,7 +41,7 @@ from bayes_tfcrds.core.constants import (
     line_area_to_cm2,
 )
 from bayes_tfcrds.core.fingerprint import content_hash
-from bayes_tfcrds.core.gum import Budget, Component, normalized_error
+from bayes_tfcrds.core.gum import Budget, Component, dof_from_relative_u, normalized_error
 from bayes_tfcrds.core.quantity import Quantity
 from bayes_tfcrds.fit.h_calibration import (
     BEAT_FREE,
@@ -56,6 +59,11 @@ from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.uncertainty.instrument import cmds_type_b, instrument_rows
+from bayes_tfcrds.uncertainty.monte_carlo import (
+    BudgetMonteCarlo,
+    add_to_summary,
+    budget_monte_carlo,
+)
 from bayes_tfcrds.uncertainty.posterior_steps import (
     IS_ESS_MIN,
     fit_transients_noise,
@@ -73,6 +81,11 @@ from bayes_tfcrds.uncertainty.propagate import (
 )
 
 H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
+# judged relative uncertainty of the Type B u's (GUM G.4.2, dof = 1/2 (du/u)^-2): a width from the
+# spread of a few alternatives (t_cut) is known to about 25 % (8 dof); a width set by a single
+# difference or weight (line-shape model, H model form) to about 50 % (2 dof); u(p), u(T) stated
+# by calibration certificates to two digits to about 10 % (50 dof)
+REL_U_SPREAD, REL_U_ONE_DIFFERENCE, REL_U_CERTIFICATE = 0.25, 0.5, 0.10
 
 
 @dataclass(frozen=True)
@@ -125,6 +138,7 @@ class BudgetResult:
     runs: dict = field(repr=False)
     tau_table: list = field(default_factory=list, repr=False)
     refined: object = field(default=None, repr=False)  # the refinement update (tf-crds)
+    monte_carlo: BudgetMonteCarlo | None = None  # JCGM 101 of A, S(T_ref), A/A_ref (SI)
 
     @property
     def status(self) -> str:
@@ -308,7 +322,8 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
     check_overlap(config)
     config, noise, beat = account_for_noise_colour(config, options.window)
-    streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
+    # the Monte Carlo stream comes last: the first four are those of spawn(4)
+    streams = dict(zip(("h", "line", "cmds", "pair", "mc"), rng.spawn(5)))
     backend = None
     if outdir is not None:  # made and claimed by run_budget, under the folder's lock
         backend = str(Path(outdir) / "chains.h5")
@@ -508,10 +523,13 @@ def _h_shifted_areas(inp, dt, sens, split, h_star, refined, h_parts, a_noise, u_
 
 
 def _reference_area(inp: _Inputs, runs: dict):
-    """Step 6: A_ref from the CMDS shifts (Laplace or emcee); None without CMDS."""
+    """Step 6: A_ref draws from the CMDS shifts (Laplace or emcee) and the fit's dof.
+
+    (None, inf) without CMDS.
+    """
     config, options = inp.config, inp.options
     if config.cmds is None:
-        return None
+        return None, np.inf
     cm = cmds_spectrum(config.cmds)
     ref_lsq = fit_line([cm], options.profile, inp.gd, inp.nu_ref)
     if options.posterior == "laplace":
@@ -530,14 +548,17 @@ def _reference_area(inp: _Inputs, runs: dict):
             "A_ref | CMDS",
         )
         ref_flat = runs["cmds"].flat()
-    return ref_flat[:, ref_lsq.names.index("line_area")]
+    return ref_flat[:, ref_lsq.names.index("line_area")], max(float(ref_lsq.dof), 1.0)
 
 
-def _h_components(split: _HSplit, grad_a, d_beat, refined, r_noise_ref: dict, noise_name: str):
+def _h_components(
+    split: _HSplit, grad_a, d_beat, refined, r_noise_ref: dict, noise_name: str, beat_dof=np.inf
+):
     """The H rows of the A budget and their correlations.
 
     One row for the posterior of the parameters not refined (all at once, through H(f)), one per
-    refined parameter (its ring-down scatter given the others).
+    refined parameter (its ring-down scatter given the others). Type A dof (GUM G.3.3): the
+    refinement's and the beat-note fit's n_points - n_params (``beat_dof``).
     """
     comps, corr = [], {}
     ir, refd, others, centre = split.ir, split.refined, split.others, split.centre
@@ -549,8 +570,10 @@ def _h_components(split: _HSplit, grad_a, d_beat, refined, r_noise_ref: dict, no
                 float(np.sqrt(refined.cov[k, k])),
                 float(grad_a[ir[k]]),
                 H_UNITS[n],
+                dof=max(float(refined.dof), 1.0),
                 note="Type A: posterior u of the ring-down update of the beat note given the other "
-                "H parameters (ring-down noise acting through H)",
+                "H parameters (ring-down noise acting through H); dof = ring-down samples - "
+                "parameters of the refinement",
             )
         )
     comps.append(
@@ -560,9 +583,11 @@ def _h_components(split: _HSplit, grad_a, d_beat, refined, r_noise_ref: dict, no
             float(np.std(d_beat)),
             1.0,
             "Hz/m",
+            dof=max(float(beat_dof), 1.0),
             note="Type A: sd of A over the joint posterior draws of these H parameters (the "
             "refined ones at their conditional mean), each propagated through its H(f) into "
-            "every tau (first order in H, exact in the parameters)",
+            "every tau (first order in H, exact in the parameters); dof = beat-note points - "
+            "parameters of its fit",
         )
     )
     for n, r in r_noise_ref.items():
@@ -627,8 +652,9 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
         u,
         1.0,
         "Hz/m",
+        dof=dof_from_relative_u(REL_U_ONE_DIFFERENCE),
         note=f"from the data: BIC weight of n_r free on the beat note w = {w:.3g}; "
-        "u = sqrt(w) |A(n_r free) - A(n_r = 2)|",
+        "u = sqrt(w) |A(n_r free) - A(n_r = 2)|; dof 2: u judged reliable to 50 % (GUM G.4.2)",
     )
     return comp, record
 
@@ -647,7 +673,9 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
             u_dir,
             1.0,
             "Hz/m",
-            note="Type A: sd of the line posterior given the refined H",
+            dof=max(float(dt.lsq.dof), 1.0),
+            note="Type A: sd of the line posterior given the refined H; dof = spectral points - "
+            "line parameters of the fit",
         )
     ]
     h_comps, corr = h_rows
@@ -660,8 +688,9 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
             float(spread / np.sqrt(12)),
             1.0,
             "Hz/m",
+            dof=dof_from_relative_u(REL_U_SPREAD),
             note="Type B: rectangular over the A(t_cut) range, t_cut = "
-            f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us",
+            f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us; dof 8: u judged reliable to 25 %",
         )
     )
     comps.append(
@@ -671,7 +700,9 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
             float(abs(dt.lsq.line_area - dt.alt.line_area) / np.sqrt(12)),
             1.0,
             "Hz/m",
-            note="Type B: rectangular over the difference of the two profiles' A",
+            dof=dof_from_relative_u(REL_U_ONE_DIFFERENCE),
+            note="Type B: rectangular over the difference of the two profiles' A; dof 2: u judged "
+            "reliable to 50 %",
         )
     )
     comps += [row.component for row in instrument]
@@ -684,7 +715,7 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
     )
 
 
-def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
+def _budget_s(sample, a_hat: float, u_a: float, line=None, dof_a: float = np.inf) -> Budget:
     """Step 8: the line intensity at the line data's T_ref (296 K) from A, p, x and T.
 
     S(T_ref) = A k_B T/(p x) Q(T)/Q(T_ref) exp(E''/k_B (1/T - 1/T_ref)) times the
@@ -693,11 +724,13 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
     c_A = S/A, c_p = -S/p, c_x = -S/x and c_T = S d ln S(T_ref)/dT with
     d ln S(T_ref)/dT = 1/T + d ln Q/dT - E''/(k_B T^2) (+ the stimulated-emission term), which
     is -0.0107 /K for CO (3-0) R(23) at 296 K: the lower-state population dominates the 1/T of
-    the number density. u(p), u(T) from the bundle; it has no u(x).
+    the number density. u(p), u(T) from the bundle; it has no u(x). dof: A's effective dof
+    (``dof_a``), p and T 50 (u judged reliable to 10 %, GUM G.4.2). The model is
+    :func:`intensity_model`, which the Monte Carlo of the budget evaluates too.
     """
     line = load_line() if line is None else line
     t, p, x = sample.temperature_k, sample.pressure_pa, sample.mole_fraction
-    s_ref = float(line.reference_intensity_from_area(a_hat, p, t, x))
+    s_ref = float(intensity_model(line)(a_hat, p, t, x))
     dlns_dt = 1.0 / t - float(line.intensity_log_derivative(t))
     return Budget(
         quantity=f"line intensity S(T_ref = {line.temperature_k:g} K)",
@@ -710,7 +743,8 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
                 u_a,
                 s_ref / a_hat,
                 "Hz/m",
-                note="combined u(A) from the A budget",
+                dof=dof_a,
+                note="combined u(A) from the A budget; dof = its effective dof",
             ),
             Component(
                 "pressure p",
@@ -718,7 +752,8 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
                 sample.pressure_u_pa,
                 -s_ref / p,
                 "Pa",
-                note="bundle /sample@pressure_u_pa",
+                dof=dof_from_relative_u(REL_U_CERTIFICATE),
+                note="Type B, normal: bundle /sample@pressure_u_pa; dof 50 (u reliable to 10 %)",
             ),
             Component(
                 "temperature T",
@@ -726,7 +761,9 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
                 sample.temperature_u_k,
                 s_ref * dlns_dt,
                 "K",
-                note="bundle /sample@temperature_u_k; d ln S(T_ref)/dT = 1/T + d ln Q/dT - "
+                dof=dof_from_relative_u(REL_U_CERTIFICATE),
+                note="Type B, normal: bundle /sample@temperature_u_k; dof 50; "
+                "d ln S(T_ref)/dT = 1/T + d ln Q/dT - "
                 f"E''/(k_B T^2) = {dlns_dt:+.4g} /K (Q: TIPS-2021)",
             ),
             Component(
@@ -741,8 +778,22 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None) -> Budget:
     )
 
 
-def _budget_ratio(a_hat: float, u_a: float, a_ref) -> Budget | None:
-    """Step 9: A/A_ref with the CMDS posterior's u; None without CMDS."""
+def intensity_model(line):
+    """S(T_ref) (cm/molecule) = f(A [Hz/m], p [Pa], T [K], x): the budget's measurement model.
+
+    Vectorised (the GUM budget evaluates it at the estimates, the Monte Carlo at every draw):
+    ``line.reference_intensity_from_area``.
+    """
+    return line.reference_intensity_from_area
+
+
+def _budget_ratio(
+    a_hat: float, u_a: float, a_ref, dof_a: float = np.inf, dof_ref: float = np.inf
+) -> Budget | None:
+    """Step 9: A/A_ref with the CMDS posterior's u; None without CMDS.
+
+    dof: A's effective dof and the CMDS fit's n_points - n_params (``dof_ref``).
+    """
     if a_ref is None:
         return None
     a_ref_hat = float(np.mean(a_ref))
@@ -753,14 +804,15 @@ def _budget_ratio(a_hat: float, u_a: float, a_ref) -> Budget | None:
         value=r,
         unit="1",
         components=(
-            Component("line area A (CRDS)", a_hat, u_a, 1.0 / a_ref_hat, "Hz/m"),
+            Component("line area A (CRDS)", a_hat, u_a, 1.0 / a_ref_hat, "Hz/m", dof=dof_a),
             Component(
                 "reference area A_ref (CMDS)",
                 a_ref_hat,
                 u_ref,
                 -r / a_ref_hat,
                 "Hz/m",
-                note="Type A: CMDS posterior",
+                dof=dof_ref,
+                note="Type A: CMDS posterior; dof = CMDS points - line parameters of the fit",
             ),
             cmds_type_b(a_ref_hat, r),
         ),
@@ -855,7 +907,7 @@ def _summary(
             "u_si": u_ref,
             "unit_si": "Hz/m",
         }
-        summary["ratio"] = {"value": budget_ratio.value, "u": budget_ratio.combined_u}
+        summary["ratio"] = {"value": budget_ratio.value, "u": budget_ratio.combined_u, "unit": "1"}
         summary["en"] = normalized_error(a_hat, 2 * u_a, a_ref_hat, 2 * u_ref)
     else:
         summary["reference_area"] = summary["ratio"] = summary["en"] = None
@@ -1043,21 +1095,33 @@ def _budget(inp: _Inputs) -> BudgetResult:
         )
         sens_a = dict(zip(BEAT_FREE, sens.grad_a))
         h_rows = _h_components(
-            split, sens.grad_a, d_beat, refined, r_noise_ref, "ring-down noise (line fit given H)"
+            split,
+            sens.grad_a,
+            d_beat,
+            refined,
+            r_noise_ref,
+            "ring-down noise (line fit given H)",
+            beat.dof,
         )
         d_h = h_shifts(sens.area_kernel, h_draws, h_star, 1)[:, 0]
     else:
         a_total = a_noise.copy()
-    a_ref = _reference_area(inp, runs)  # 6. A_ref
+    a_ref, dof_ref = _reference_area(inp, runs)  # 6. A_ref
     form = None
     if options.method == "tf-crds":  # 6b. the form of the H model
         form_row, form = _h_model_form(inp, dt, beat, refined)
         h_rows = (h_rows[0] + [form_row], h_rows[1])
     instrument = instrument_rows(config, options, h_star, dt.spec, inp.gd, inp.nu_ref)  # 6c.
     budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument)  # 7-9. budgets
-    budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u)
-    budget_ratio = _budget_ratio(budget_a.value, budget_a.combined_u, a_ref)
+    nu_a = budget_a.effective_dof
+    budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u, dof_a=nu_a)
+    budget_ratio = _budget_ratio(budget_a.value, budget_a.combined_u, a_ref, nu_a, dof_ref)
     summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, h_star)
+    mc = budget_monte_carlo(
+        budget_a, a_total, inp.sample, a_ref, inp.streams["mc"], intensity_model(load_line())
+    )
+    budgets = {"line_area": budget_a, "intensity": budget_s, "ratio": budget_ratio}
+    add_to_summary(summary, budgets, mc)
     summary["instrument"] = {row.component.name: row.detail for row in instrument}
     if refined is not None:
         summary["transfer_function"]["refinement"] = _refinement_summary(refined)
@@ -1083,4 +1147,5 @@ def _budget(inp: _Inputs) -> BudgetResult:
         runs=runs,
         tau_table=_tau_table(inp, dt, h_star, h_draws),
         refined=refined,
+        monte_carlo=mc,
     )

@@ -1,13 +1,26 @@
-"""The files of a budget run: budget.json, GUM tables, decay-time posteriors, netCDF, corners."""
+"""The files of a budget run: budget.json, GUM tables, decay-time posteriors, netCDF, corners.
+
+One unit per quantity in every file: line areas A, A_ref in cm^-2 (SI Hz/m in ``*_si`` fields and
+columns), S(T_ref) in cm/molecule, A/A_ref in 1. budget.json's structure (for a budget that
+imports this one, see :func:`component_from_result`) is described in data/FORMAT.md, section
+"Outputs of `budget`".
+"""
 
 from __future__ import annotations
 
+import csv
+import io
 import json
+import math
+from dataclasses import replace
 from pathlib import Path
 
+from bayes_tfcrds.core.constants import line_area_to_cm2
+from bayes_tfcrds.core.gum import Budget, Component, format_uncertainty, format_value
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.uncertainty.line_budget import BudgetResult
+from bayes_tfcrds.uncertainty.monte_carlo import edge_units
 
 
 def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list:
@@ -32,7 +45,12 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
     tables = [result.budget_a, result.budget_s] + (
         [result.budget_ratio] if result.budget_ratio is not None else []
     )
-    md = "\n\n".join(f"## {b.quantity}\n\n{b.to_markdown()}" for b in tables)
+    mcs = _monte_carlo_results(result)
+    md = "\n\n".join(
+        f"## {b.quantity}\n\n{edge_units(b).to_markdown()}"
+        + monte_carlo_markdown(mc, *_to_cm2(b.unit))
+        for b, mc in zip(tables, mcs)
+    )
     banner = failed_banner(result)
     if banner:
         md = f"# {banner}\n\n{md}"
@@ -45,7 +63,7 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         md += "\n\n" + instrument_markdown(result.summary["instrument"])
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
-    atomic_write_text(out / "budget.csv", mark + result.budget_a.to_csv())
+    atomic_write_text(out / "budget.csv", mark + budget_csv(result))
     lines = (
         ([mark.rstrip()] if mark else [])
         + ["nu_hz,t_cut_s,tau_s,u_noise_s,u_h_s,u_s"]
@@ -143,3 +161,201 @@ def refinement_markdown(refinement: dict) -> str:
         f"p = {refinement['tension_p']:.3g})" + (finding if refinement["in_tension"] else "")
     )
     return "\n".join(rows)
+
+
+def _monte_carlo_results(result: BudgetResult) -> list:
+    """The MC results in the order of the budget tables (A, S, A/A_ref), None where absent."""
+    mc = result.monte_carlo
+    if mc is None:
+        return [None, None, None]
+    return [mc.line_area, mc.intensity, mc.ratio]
+
+
+def monte_carlo_markdown(mc, unit: str, scale: float = 1.0) -> str:
+    """The JCGM 101 line under a budget table: y, u, 95 % interval, k, trials, stability.
+
+    ``mc`` in the budget's SI unit; shown in ``unit`` (= ``scale`` x SI).
+    """
+    if mc is None:
+        return ""
+    mc = replace(
+        mc,
+        value=mc.value * scale,
+        u=mc.u * scale,
+        interval=(mc.interval[0] * scale, mc.interval[1] * scale),
+        tolerance=mc.tolerance * scale,
+    )
+    state = "stabilised" if mc.stabilised else "**not stabilised** (trial cap reached)"
+    return (
+        f"\nJCGM 101 adaptive Monte Carlo ({mc.trials} trials, {state} at delta = "
+        f"{mc.tolerance:.1g} {unit}): y = {format_value(mc.value, mc.u)} {unit}, u = "
+        f"{format_uncertainty(mc.u)} {unit}, 95 % interval [{format_value(mc.interval[0], mc.u)}"
+        f", {format_value(mc.interval[1], mc.u)}] {unit}, k = half-width/u = {mc.k:.3f} "
+        "(beside the GUM k = 2 and k = t_95(nu_eff)).\n"
+    )
+
+
+# budget.csv: one unit per quantity, as budget.json (A in cm^-2), SI beside it
+CSV_COLUMNS = (
+    "measurand",
+    "row",
+    "kind",
+    "value",
+    "standard_uncertainty",
+    "unit",
+    "sensitivity_coefficient",
+    "contribution",
+    "contribution_unit",
+    "share",
+    "dof",
+    "k",
+    "interval_low",
+    "interval_high",
+    "value_si",
+    "standard_uncertainty_si",
+    "unit_si",
+    "note",
+)
+
+
+def _to_cm2(unit: str) -> tuple[str, float]:
+    """(edge unit, factor) of a budget unit: Hz/m -> cm^-2, others unchanged."""
+    return ("cm^-2", float(line_area_to_cm2(1.0))) if unit == "Hz/m" else (unit, 1.0)
+
+
+def _budget_rows(budget: Budget, mc) -> list:
+    """The rows of one budget in budget.json's units: inputs, the GUM result, the MC result."""
+    out_unit, f_out = _to_cm2(budget.unit)
+    rows = []
+    shares = budget.shares()
+    for c in budget.components:
+        unit, f_in = _to_cm2(c.unit)
+        rows.append(
+            {
+                "row": c.name,
+                "kind": "input",
+                "value": None if c.value is None else c.value * f_in,
+                "standard_uncertainty": c.u * f_in,
+                "unit": unit,
+                "sensitivity_coefficient": c.sensitivity * f_out / f_in,
+                "contribution": c.contribution * f_out,
+                "contribution_unit": out_unit,
+                "share": shares[c.name],
+                "dof": c.dof,
+                "value_si": c.value if f_in != 1.0 else None,
+                "standard_uncertainty_si": c.u if f_in != 1.0 else None,
+                "unit_si": c.unit if f_in != 1.0 else None,
+                "note": c.note,
+            }
+        )
+    nu = budget.effective_dof
+    k95 = budget.coverage_factor(0.95)
+    y, u = budget.value, budget.combined_u
+    si = f_out != 1.0
+    rows.append(
+        {
+            "row": "GUM combined (k = t_95(nu_eff))",
+            "kind": "combined",
+            "value": y * f_out,
+            "standard_uncertainty": u * f_out,
+            "unit": out_unit,
+            "dof": nu,
+            "k": k95,
+            "interval_low": (y - k95 * u) * f_out,
+            "interval_high": (y + k95 * u) * f_out,
+            "value_si": y if si else None,
+            "standard_uncertainty_si": u if si else None,
+            "unit_si": budget.unit if si else None,
+            "note": "GUM Eq. 16, Welch-Satterthwaite nu_eff (G.2b); U (k = 2) = 2 u",
+        }
+    )
+    if mc is not None:
+        rows.append(
+            {
+                "row": "JCGM 101 Monte Carlo",
+                "kind": "monte_carlo",
+                "value": mc.value * f_out,
+                "standard_uncertainty": mc.u * f_out,
+                "unit": out_unit,
+                "k": mc.k,
+                "interval_low": mc.interval[0] * f_out,
+                "interval_high": mc.interval[1] * f_out,
+                "value_si": mc.value if si else None,
+                "standard_uncertainty_si": mc.u if si else None,
+                "unit_si": budget.unit if si else None,
+                "note": f"adaptive, {mc.trials} trials, "
+                + ("stabilised" if mc.stabilised else "not stabilised"),
+            }
+        )
+    return [{"measurand": budget.quantity, **r} for r in rows]
+
+
+def _cell(v) -> str:
+    if v is None:
+        return ""
+    if isinstance(v, float):
+        return "" if math.isnan(v) else ("inf" if math.isinf(v) else repr(v))
+    return str(v)
+
+
+def budget_csv(result: BudgetResult) -> str:
+    """budget.csv: every row of the A, S(T_ref) and A/A_ref budgets, A_ref, the GUM and MC results.
+
+    Units as budget.json (A and A_ref in cm^-2, S in cm/molecule), SI (Hz/m) in the *_si columns
+    where converted; full precision; inf dof written 'inf'.
+    """
+    rows = []
+    tables = [result.budget_a, result.budget_s, result.budget_ratio]
+    for budget, mc in zip(tables, _monte_carlo_results(result)):
+        if budget is not None:
+            rows += _budget_rows(budget, mc)
+    if result.budget_ratio is not None:
+        ref = result.budget_ratio.components[1]
+        f = float(line_area_to_cm2(1.0))
+        rows.append(
+            {
+                "measurand": "reference area A_ref (CMDS)",
+                "row": "CMDS posterior",
+                "kind": "combined",
+                "value": ref.value * f,
+                "standard_uncertainty": ref.u * f,
+                "unit": "cm^-2",
+                "dof": ref.dof,
+                "value_si": ref.value,
+                "standard_uncertainty_si": ref.u,
+                "unit_si": ref.unit,
+                "note": ref.note,
+            }
+        )
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for r in rows:
+        w.writerow([_cell(r.get(k)) for k in CSV_COLUMNS])
+    return buf.getvalue()
+
+
+def component_from_result(entry: dict, name: str, sensitivity: float, note: str = "") -> Component:
+    """A row of another GUM budget from one quantity of a budget.json (``line_area``, ...).
+
+    ``entry``: e.g. ``json.load(f)["intensity"]`` with ``value``, ``u``, ``unit`` and
+    ``effective_dof`` ("inf" for infinite); ``sensitivity``: c_i of the importing budget per
+    that unit. The importing budget then carries u and nu_eff on (GUM G.4), and its Monte Carlo
+    can use ``entry["monte_carlo"]`` (y, u, interval) as the input's summary.
+    """
+    missing = [k for k in ("value", "u", "unit") if entry.get(k) is None]
+    if missing:
+        raise ValueError(
+            f"budget.json entry for {name!r} lacks {missing}: was the budget run failed? "
+            "(its numbers are then under 'unconverged_estimates' and must not be used)"
+        )
+    dof = entry.get("effective_dof", "inf")
+    return Component(
+        name,
+        float(entry["value"]),
+        float(entry["u"]),
+        float(sensitivity),
+        entry["unit"],
+        dof=math.inf if dof in ("inf", None) else float(dof),
+        note=note or "imported from budget.json (combined u and effective dof of that budget)",
+    )

@@ -394,3 +394,38 @@ def test_outputs_handle_none_values_correlations_and_pipes():
     d = json.loads(json.dumps(b.to_dict(), allow_nan=False))
     assert d["components"][0]["value"] is None
     assert d["correlations"] == [{"a": "ring-down noise", "b": "p", "r": 0.2}]
+
+
+def test_type_b_dof_from_the_reliability_of_u():
+    """GUM G.4.2: u judged reliable to 25 % has nu = (1/2)(0.25)^-2 = 8 dof; exact u: inf."""
+    from bayes_tfcrds.core.gum import dof_from_relative_u
+
+    assert dof_from_relative_u(0.25) == pytest.approx(8.0)
+    assert dof_from_relative_u(0.5) == pytest.approx(2.0)
+    assert dof_from_relative_u(0.0) == math.inf
+    with pytest.raises(ValueError):
+        dof_from_relative_u(-0.1)
+
+
+def test_a_budget_in_other_units_is_the_same_budget():
+    """Converting a unit scales value, u and c_i so that every contribution is the same quantity
+    in the new output unit; shares, dof and correlations do not change."""
+    bud = Budget(
+        "A",
+        300.0,
+        "Hz/m",
+        (
+            Component("noise", None, 2.0, 1.0, "Hz/m", dof=12),
+            Component("f_c", 5e4, 900.0, -0.3, "Hz"),
+        ),
+        correlations={("noise", "f_c"): 0.4},
+    )
+    f = 1.0 / 2.99792458e10  # Hz/m -> cm^-2
+    conv = bud.in_units({"Hz/m": ("cm^-2", f)})
+    assert conv.unit == "cm^-2" and conv.components[0].unit == "cm^-2"
+    assert conv.components[1].unit == "Hz" and conv.components[1].value == 5e4
+    assert conv.combined_u == pytest.approx(f * bud.combined_u, rel=1e-12)
+    assert conv.components[1].sensitivity == pytest.approx(-0.3 * f, rel=1e-12)
+    assert conv.components[0].sensitivity == pytest.approx(1.0, rel=1e-12)
+    assert conv.shares() == pytest.approx(bud.shares(), rel=1e-12)
+    assert conv.effective_dof == pytest.approx(bud.effective_dof, rel=1e-12)

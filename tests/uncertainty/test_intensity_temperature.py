@@ -53,6 +53,58 @@ def test_s_at_296_k_is_recovered_from_a_campaign_at_another_temperature(temperat
     write_outputs(res, tmp_path)
     assert json.loads((tmp_path / "budget.json").read_text())["intensity"]["t_ref_k"] == 296.0
     assert "## line intensity S(T_ref = 296 K)" in (tmp_path / "budget.md").read_text()
+    _check_monte_carlo_and_csv(res, tmp_path)
+
+
+def _check_monte_carlo_and_csv(res, out):
+    """Issue #17 items 3 and 5 on the same run: the JCGM 101 entries beside the GUM ones, finite
+    dof, and budget.csv in budget.json's units (A in cm^-2, S in cm/molecule, SI beside)."""
+    import csv
+
+    s = json.loads((out / "budget.json").read_text())
+    for key, unit in (("line_area", "cm^-2"), ("intensity", "cm/molecule"), ("ratio", "1")):
+        entry = s[key]
+        mc = entry["monte_carlo"]
+        assert mc["unit"] == unit and mc["stabilised"] and mc["trials"] % 10_000 == 0
+        # MC and GUM describe the same model: u within 10 % (the A draws are 4000 Laplace
+        # draws; Type B rows rectangular in the MC), the MC interval inside y +/- 3 u
+        assert abs(mc["u"] / entry["u"] - 1) < 0.10, key
+        assert entry["value"] - 3 * entry["u"] < mc["interval"][0] < mc["interval"][1]
+        assert mc["interval"][1] < entry["value"] + 3 * entry["u"]
+        assert 1.6 < mc["k"] < 2.2 and entry["k"] == 2.0
+        nu = entry["effective_dof"]
+        assert nu != "inf" and nu > 1  # Type A rows carry n - p, Type B rows G.4.2 dof
+    assert res.monte_carlo.intensity.u == pytest.approx(s["intensity"]["monte_carlo"]["u"])
+    rows = list(csv.DictReader((out / "budget.csv").open()))
+    measurands = {r["measurand"] for r in rows}
+    assert {"line area A", "A/A_ref", "reference area A_ref (CMDS)"} <= measurands
+    assert any(m.startswith("line intensity S(T_ref = 296 K)") for m in measurands)
+    units = {(r["measurand"], r["kind"]): r["unit"] for r in rows if r["kind"] != "input"}
+    assert units[("line area A", "combined")] == "cm^-2"
+    assert units[("line area A", "monte_carlo")] == "cm^-2"
+    a_row = next(r for r in rows if r["measurand"] == "line area A" and r["kind"] == "combined")
+    # the same number as budget.json, and its SI twin in Hz/m
+    assert float(a_row["value"]) == pytest.approx(s["line_area"]["value"], rel=1e-12)
+    assert float(a_row["value_si"]) == pytest.approx(s["line_area"]["value_si"], rel=1e-12)
+    assert a_row["unit_si"] == "Hz/m"
+    s_in_a = next(
+        r for r in rows if r["measurand"].startswith("line intensity") and r["row"] == "line area A"
+    )
+    assert s_in_a["unit"] == "cm^-2"  # A enters S's budget in the same unit as everywhere else
+    # contribution = |c| u in the output unit, whatever units the row is shown in
+    c, u = float(s_in_a["sensitivity_coefficient"]), float(s_in_a["standard_uncertainty"])
+    assert abs(c) * u == pytest.approx(float(s_in_a["contribution"]), rel=1e-12)
+    assert all(r["dof"] for r in rows if r["kind"] == "input")
+    # another budget imports S: 2 S (c = 2) has twice its u and the same nu_eff (one input)
+    from bayes_tfcrds.core.gum import Budget
+    from bayes_tfcrds.uncertainty.outputs import component_from_result
+
+    row = component_from_result(s["intensity"], "S(296 K) of run 1", 2.0)
+    twice = Budget("2 S", 2 * row.value, "cm/molecule", (row,))
+    assert twice.combined_u == pytest.approx(2 * s["intensity"]["u"], rel=1e-12)
+    assert twice.effective_dof == pytest.approx(s["intensity"]["effective_dof"], rel=1e-12)
+    table = s["gum_budgets"]["line_area"]
+    assert table["unit"] == "cm^-2" and table["combined_u"] == pytest.approx(s["line_area"]["u"])
 
 
 def test_linefit_reports_the_same_s_at_296_k():
