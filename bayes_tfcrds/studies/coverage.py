@@ -301,6 +301,12 @@ def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
             s["intensity"]["u"],
         ),
     }
+    mc = s["intensity"].get("monte_carlo")
+    if mc is not None:
+        lo, hi = mc["interval"]
+        s_true = truth["line"]["intensity_ref_cm_per_molecule"]
+        # the JCGM 101 95 % interval of S (k from the Monte Carlo), checked as an interval
+        q["S (U, MC)"] = {"in95": bool(lo <= s_true <= hi), "k": mc["k"]}
     rows = [r for r in res.tau_table if np.isclose(r[1], options.t_cut_s)]
     nu = np.array([r[0] for r in rows])
     k = int(np.argmin(np.abs(nu - bundle.sample.nu0_hz)))
@@ -669,6 +675,12 @@ def _coverage_table(sums: dict, n: int, post: str, rep) -> None:
     _rank_figure(rep, {k: sums[k] for k in main_keys}, n, f"Rank histograms ({post} posterior)")
 
 
+def _mc_coverage(ok: list) -> float | None:
+    """Share of campaigns whose JCGM 101 95 % interval of S(296 K) holds the truth."""
+    mc = [r["quantities"]["S (U, MC)"]["in95"] for r in ok if "S (U, MC)" in r["quantities"]]
+    return float(np.mean(mc)) if mc else None
+
+
 def _coverage_checks(sums: dict, checks: dict, recs: list, bad: list, n: int, rep) -> None:
     """Summary lines and pass/fail diagnostics of the coverage (targets of issue #9)."""
     main_keys = list(QUANTITIES)
@@ -701,6 +713,15 @@ def _coverage_checks(sums: dict, checks: dict, recs: list, bad: list, n: int, re
         abs(s_ref["coverage_95"] - 0.95) <= 0.03,
         f"{100 * s_ref['coverage_95']:.1f} %",
     )
+    mc = [r["quantities"]["S (U, MC)"] for r in recs if "S (U, MC)" in r.get("quantities", {})]
+    c95 = _mc_coverage([r for r in recs if r.get("status") == "ok"])
+    if mc:
+        rep.add_diagnostic(
+            "S(296 K): the Monte Carlo 95 % interval (k from JCGM 101) covers 95 +/- 3 %",
+            abs(c95 - 0.95) <= 0.03,
+            f"{100 * c95:.1f} % of {len(mc)} campaigns; k from "
+            f"{min(m['k'] for m in mc):.2f} to {max(m['k'] for m in mc):.2f}",
+        )
     rep.add_diagnostic(
         "every campaign analysed",
         not bad,
@@ -917,6 +938,7 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
         "settings_fingerprint": settings.fingerprint(),
         "beat_note_modes": modes,
         "a_coverage_failures_as_misses": {"68": a68_all, "95": a95_all},
+        "s_monte_carlo_coverage_95": _mc_coverage(ok),
     }
     m = min(study.mcmc_campaigns, study.n_campaigns)
     mrecs = []

@@ -10,7 +10,7 @@ The model is the one the GUM budgets linearise, evaluated at every draw:
   function the GUM budget of S evaluates: p and T normal with the bundle's u (the bundle states
   no distribution), x exact (the bundle has no u(x)). The isotopic abundance is not an input of
   the shipped model (HITRAN intensities include the natural abundance and x is that of CO).
-* A/A_ref with A_ref from the CMDS posterior draws (resampled).
+* A/A_ref with A_ref from the CMDS posterior draws (resampled) times its rectangular Type B.
 
 Each by :func:`~bayes_tfcrds.core.mcm.adaptive_monte_carlo` (2 significant digits of u, 95 %),
 in the budget's SI units (A in Hz/m, S in cm/molecule); unit conversion happens at the edges.
