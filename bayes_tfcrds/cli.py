@@ -450,9 +450,16 @@ def _budget_batch(args) -> int:
     jobs = [
         BudgetJob(str(f), str(d), args.config, opts, args.seed) for f, d in zip(args.file, folders)
     ]
-    with _executor(args) as pool:
-        _say(f"# {len(jobs)} bundle budgets on {_executor_name(args)}")
-        records = run_batch(jobs, pool=pool, progress=not args.quiet)
+    try:
+        with _executor(args) as pool:
+            _say(f"# {len(jobs)} bundle budgets on {_executor_name(args)}")
+            records = run_batch(jobs, pool=pool, progress=not args.quiet)
+    except KeyboardInterrupt:
+        _say(
+            f"interrupted: each bundle's chains so far are kept in its folder under {args.output}; "
+            "run the same command again to resume (same seed, same results)"
+        )
+        return 130
     if len(jobs) > 1:
         index = [{k: r[k] for k in ("bundle", "output", "status")} for r in records]
         out = Path(args.output) / "batch.json"

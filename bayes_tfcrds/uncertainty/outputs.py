@@ -151,8 +151,9 @@ def posterior_markdown(record: dict) -> str:
     ]
     if cov.get("coverage"):
         rows += [
-            f"Measured coverage over {cov['n_campaigns']} simulated campaigns ({cov['source']}; "
-            "the u_c rows use the full GUM budget):",
+            f"Measured coverage over {cov['n_campaigns']} simulated campaigns ({cov['source']}): "
+            "A and A/A_ref are the posterior's own intervals (ring-down noise and H); the (u_c) "
+            "rows are those of the full GUM u_c, Type B rows included.",
             "",
             "| quantity | 68 % interval holds the truth | 95 % interval holds the truth |",
             "|---|---|---|",
