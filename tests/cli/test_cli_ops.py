@@ -28,7 +28,7 @@ def _simulate(path, seed):
 @pytest.fixture(scope="module")
 def bundles(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ops")
-    return _simulate(folder / "first.h5", 4), _simulate(folder / "second.h5", 5)
+    return (_simulate(folder / "first.h5", 4),)
 
 
 @pytest.fixture(scope="module")
@@ -206,24 +206,23 @@ def test_batch_on_a_dask_scheduler_gives_each_bundle_its_own_budget(
     bad = tmp_path / "broken.h5"
     bad.write_text("not HDF5")
     out = tmp_path / "batch"
-    argv = ["budget", *map(str, bundles), str(bad), "--posterior", "laplace", "--seed", "3"]
+    argv = ["budget", str(bundles[0]), str(bad), "--posterior", "laplace", "--seed", "3"]
     argv += ["--executor", "dask", "--scheduler", "tcp://10.0.0.5:8786", "-o", str(out)]
     assert main(argv) == 1  # one bundle refused: said in the exit status, the others still run
     assert fake_dask["address"] == "tcp://10.0.0.5:8786" and fake_dask["closed"]
-    assert [name for name, _ in fake_dask["executor"].tasks] == ["budget_task"] * 3
+    assert [name for name, _ in fake_dask["executor"].tasks] == ["budget_task"] * 2
     index = json.loads((out / "batch.json").read_text())
     status = {Path(r["bundle"]).name: r["status"] for r in index["budgets"]}
-    assert status["first.h5"] == status["second.h5"] == "ok"
+    assert status["first.h5"] == "ok"
     assert status["broken.h5"].startswith("error: ") and "broken.h5" in status["broken.h5"]
     # a bundle in a batch gets exactly the numbers of its own budget command (same seed)
     single = json.loads((laplace[1] / "budget.json").read_text())
     first = json.loads((out / "first" / "budget.json").read_text())
-    second = json.loads((out / "second" / "budget.json").read_text())
     assert first["line_area"] == single["line_area"] and first["ratio"] == single["ratio"]
-    assert second["line_area"]["value"] != first["line_area"]["value"]  # another campaign
     captured = capsys.readouterr()
-    assert "\r" not in captured.err and "# bundles: 3/3 (100 %)" in captured.err
-    assert captured.out.count(": A = ") == 2 and "error: " in captured.err
+    assert "\r" not in captured.err and "# bundles: 2/2 (100 %)" in captured.err
+    assert captured.out.count(": A = ") == 1 and "error: " in captured.err
+    assert not (out / "broken").exists() or not list((out / "broken").glob("budget.*"))
 
 
 def test_without_dask_the_dask_executor_is_refused_before_any_work(
@@ -285,3 +284,18 @@ def test_study_on_a_dask_scheduler_sends_one_task_per_configuration(fake_dask, t
     assert {r["config"] for r in numbers["rows"]} == {"D2", "D4"}
     err = capsys.readouterr().err
     assert "# configurations: 2/2 (100 %)" in err and "\r" not in err
+
+
+def test_coverage_is_quoted_only_from_a_laplace_coverage_study(tmp_path):
+    from bayes_tfcrds.uncertainty.outputs import laplace_coverage, posterior_record
+
+    numbers = _coverage_file()
+    path = tmp_path / "numbers.json"
+    path.write_text(json.dumps(numbers))
+    assert laplace_coverage(path)["coverage"]["A"]["68"] == numbers["summaries"]["A"]["coverage_68"]
+    path.write_text(json.dumps(dict(numbers, posterior="mcmc")))  # another study's figures
+    assert laplace_coverage(path) is None
+    assert laplace_coverage(tmp_path / "absent.json") is None
+    record = posterior_record("laplace", tmp_path / "absent.json")
+    assert record["approximation"] and "coverage" not in record["measured_coverage"]
+    assert "reports/coverage/numbers.json" in record["measured_coverage"]["source"]
