@@ -2,11 +2,17 @@
 
 Every command takes ``--seed`` (the same inputs and seed give the same numbers) and reports
 bad input as one clear message naming what is wrong, with exit status 1 or 2.
+
+Results go to stdout; progress, notes, warnings and errors to stderr through :mod:`logging`
+(the package's loggers, ``bayes_tfcrds.*``), which only the command line configures: every
+command takes ``--quiet`` (warnings and errors only) and ``--verbose`` (also debug lines).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
 from pathlib import Path
@@ -34,14 +40,63 @@ def _printable(text: str) -> str:
     return "".join(c if c.isprintable() else repr(c)[1:-1] for c in text)
 
 
+log = logging.getLogger(__name__)
+
+#: lines that ``--quiet`` still shows: they say something is wrong or must be read
+_WARNING_PREFIXES = ("warning", "FAILED", "interrupted", "finding")
+
+
+class _StderrHandler(logging.Handler):
+    """Each record as one line on the current ``sys.stderr``, control characters escaped.
+
+    The stream is looked up at each record, so a redirected stderr (a test, a notebook)
+    receives the lines.
+    """
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage()
+            if record.levelno < logging.INFO:  # --verbose: say where a debug line comes from
+                text = f"# debug {record.name}: {text}"
+            print(_printable(text), file=sys.stderr)
+        except Exception:  # logging's contract: report, never raise
+            self.handleError(record)
+
+
+_HANDLER = _StderrHandler()
+
+
+def configure_logging(verbosity: int = 0) -> None:
+    """Send the package's log records to stderr: -1 quiet (warnings), 0 notes, 1 debug too.
+
+    Called once per command by :func:`main`; library code never configures logging.
+    """
+    package = logging.getLogger("bayes_tfcrds")
+    if _HANDLER not in package.handlers:
+        package.addHandler(_HANDLER)
+    level = {-1: logging.WARNING, 0: logging.INFO}.get(verbosity, logging.DEBUG)
+    package.setLevel(level)
+    _HANDLER.setLevel(level)
+
+
 def _say(line: str) -> None:
-    """Print one line of progress, warning or error to stderr, control characters escaped."""
-    print(_printable(line), file=sys.stderr)
+    """One line of progress, a note, or a warning, to stderr through logging.
+
+    Lines that say something is wrong (warning, FAILED, ...) are warnings, shown even with
+    ``--quiet``; the others are notes (level INFO).
+    """
+    level = logging.WARNING if line.startswith(_WARNING_PREFIXES) else logging.INFO
+    log.log(level, line)
+
+
+def _result(line: str) -> None:
+    """One line of a command's result, on stdout (control characters escaped)."""
+    print(_printable(line))
 
 
 def _fail(message, code: int) -> int:
     """Report a refusal as the one line ``error: MESSAGE``; returns the exit status."""
-    _say(f"error: {message}")
+    log.error(f"error: {message}")
     return code
 
 
@@ -230,7 +285,7 @@ def cmd_linefit(args) -> int:
     for line in _linefit_warnings(result, args.tcut[0]):
         _say(line)
     la, ra, q = result.line_area, result.reference_area, result.ratio
-    _say(
+    _result(
         f"A = {la.value:.6e} +/- {la.u:.2e} {la.unit}; "
         + (
             "no CMDS reference in this configuration"
@@ -309,8 +364,7 @@ def cmd_import(args) -> int:
             bundle = import_lab_folder(args.folder, args.output)
         except LabFolderError as exc:
             return _fail(exc, 1)
-        if not args.quiet:
-            _say(f"wrote {args.output}: configurations {list(bundle.configs)} from {args.folder}")
+        _say(f"wrote {args.output}: configurations {list(bundle.configs)} from {args.folder}")
         return 0
     from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 
@@ -322,14 +376,12 @@ def cmd_import(args) -> int:
     files = write_lab_folder(bundle, args.folder)
     if args.output is not None:
         save_bundle(bundle, args.output, truth=truth)
-    if not args.quiet:
-        _say(
-            f"wrote {len(files)} files to {args.folder} (a simulated campaign in lab units, seed "
-            f"{args.seed})"
-            + (f" and the bundle they came from to {args.output}" if args.output else "")
-            + f"; import it: bayes-tfcrds import {args.folder} -o "
-            "bundle.h5"
-        )
+    _say(
+        f"wrote {len(files)} files to {args.folder} (a simulated campaign in lab units, seed "
+        f"{args.seed})"
+        + (f" and the bundle they came from to {args.output}" if args.output else "")
+        + f"; import it: bayes-tfcrds import {args.folder} -o bundle.h5"
+    )
     return 0
 
 
@@ -339,32 +391,48 @@ def cmd_demo(args) -> int:
 
     result = run_demo(args.output, seed=args.seed, quick=args.quick, log=_say)
     print("\n".join(result.summary_lines()))
-    print(file=sys.stderr)
     _say(f"wrote {result.bundle_path}, {result.results_path}, {result.summary_path}")
     return 0
 
 
-def cmd_budget(args) -> int:
-    from bayes_tfcrds.fit.h_calibration import AnalysisError
-    from bayes_tfcrds.fit.line_analysis import LineFitError
-    from bayes_tfcrds.fit.refine import tension_lines
-    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
-    from bayes_tfcrds.uncertainty.outputs import failed_banner, write_outputs
+def _budget_options(args):
+    """The budget's options from the command line (refused with exit status 2)."""
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
 
-    bundle = _load(args.file)
-    config = _config(bundle, args.config)
     opts = BudgetOptions(
         method=args.method,
         window=args.window,
         t_cut_s=args.tcut[0],
         profile=args.profile,
         refine_free=args.refine,
+        posterior=args.posterior,
     )
     if args.steps is not None or args.max_steps is not None:
         try:
             opts = opts.with_steps(args.steps, args.max_steps)
         except ValueError as exc:
-            return _fail(exc, 2)
+            raise Refused(exc, 2) from None
+    return opts
+
+
+def cmd_budget(args) -> int:
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.fit.line_analysis import LineFitError
+    from bayes_tfcrds.fit.refine import tension_lines
+    from bayes_tfcrds.uncertainty.line_budget import run_budget
+    from bayes_tfcrds.uncertainty.outputs import (
+        failed_banner,
+        posterior_line,
+        posterior_record,
+        write_outputs,
+    )
+
+    _check_executor(args)
+    if len(args.file) > 1 or args.executor != "local" or args.workers > 1:
+        return _budget_batch(args)
+    bundle = _load(args.file[0])
+    config = _config(bundle, args.config)
+    opts = _budget_options(args)
     try:
         try:
             res = run_budget(
@@ -388,6 +456,8 @@ def cmd_budget(args) -> int:
         return 130
     if not res.passed:
         print(failed_banner(res))
+    if opts.posterior != "mcmc":
+        _result(posterior_line(posterior_record(opts.posterior)))
     noise = res.summary.get("noise")
     if noise and not noise["white"]:
         _say(
@@ -414,8 +484,7 @@ def cmd_budget(args) -> int:
         return 3
     a, q, s = res.line_area, res.ratio, res.intensity
     t_ref = res.summary["intensity"]["t_ref_k"]
-    print(file=sys.stderr)
-    _say(
+    _result(
         f"A = {a.value:.6e} +/- {a.u:.2e} cm^-2;  A/A_ref = {q.value:.5f} +/- {q.u:.5f};  E_n = "
         f"{res.en:.2f};  S({t_ref:g} K) = {s.value:.5e} +/- {s.u:.2e} cm/molecule"
     )
@@ -452,30 +521,154 @@ def cmd_compare(args) -> int:
         raise Refused(str(exc)) from None
     written = write_comparison(comp, results, args.output, seed=args.seed)
     c, r = comp.consistency, comp.reference
-    if not args.quiet:
-        _say(f"wrote {', '.join(str(p) for p in written)}")
-    print(
+    _say(f"wrote {', '.join(str(p) for p in written)}")
+    _result(
         f"x_ref = {r.value:.6e} +/- {r.u:.2e} {comp.unit} ({r.method}); chi2 = {c.chi2:.3f} "
         f"({c.dof} dof, p = {c.p_value:.3g}, R_B = {c.birge_ratio:.3f})"
     )
     return 0
 
 
-def cmd_study(args) -> int:
+def _budget_batch(args) -> int:
+    """Budgets of several bundles (or of one on an executor): OUT/<bundle stem>/ each, batch.json.
+
+    Every bundle gets the same options and seed as its own ``budget`` command would; a bundle
+    that is refused or fails its gates is reported and the others still run.
+    """
+    import json
+
+    from bayes_tfcrds.studies.batch import BudgetJob, batch_folders, run_batch
+    from bayes_tfcrds.uncertainty.outputs import posterior_line, posterior_record
+
+    opts = _budget_options(args)
+    missing = [f for f in args.file if not Path(f).is_file()]
+    if missing:
+        raise Refused(f"no bundle file {missing[0]} (budget reads HDF5 bundles, FORMAT.md)", 2)
+    try:
+        folders = batch_folders(args.file, args.output)
+    except ValueError as exc:
+        raise Refused(exc, 2) from None
+    jobs = [
+        BudgetJob(str(f), str(d), args.config, opts, args.seed) for f, d in zip(args.file, folders)
+    ]
+    try:
+        with _executor(args) as pool:
+            _say(f"# {len(jobs)} bundle budgets on {_executor_name(args)}")
+            records = run_batch(jobs, pool=pool, progress=not args.quiet)
+    except KeyboardInterrupt:
+        _say(
+            f"interrupted: each bundle's chains so far are kept in its folder under {args.output}; "
+            "run the same command again to resume (same seed, same results)"
+        )
+        return 130
+    if len(jobs) > 1:
+        index = [{k: r[k] for k in ("bundle", "output", "status")} for r in records]
+        out = Path(args.output) / "batch.json"
+        atomic_write_text(out, json.dumps({"seed": args.seed, "budgets": index}, indent=2) + "\n")
+        _say(f"wrote {out}")
+    if opts.posterior != "mcmc":
+        _result(posterior_line(posterior_record(opts.posterior)))
+    for r in records:
+        s = r["summary"]
+        if r["status"] == "ok":
+            q = s["ratio"]
+            _result(
+                f"{r['bundle']}: A = {s['line_area']['value']:.6e} +/- {s['line_area']['u']:.2e} "
+                "cm^-2"
+                + ("" if q is None else f";  A/A_ref = {q['value']:.5f} +/- {q['u']:.5f}")
+                + f"  ({r['output']})"
+            )
+        else:
+            _say(
+                f"{'FAILED' if r['status'].startswith('failed') else 'error'}: {r['bundle']}: "
+                f"{r['status']}"
+            )
+    if any(r["status"].startswith("error") for r in records):
+        return 1
+    return 3 if any(r["status"] != "ok" for r in records) else 0
+
+
+def _executor_name(args) -> str:
+    if args.executor == "dask":
+        return f"the Dask scheduler {args.scheduler}"
+    return f"{args.workers} local process{'es' if args.workers > 1 else ''}"
+
+
+def _check_executor(args) -> None:
+    """Refuse executor options that cannot work together, before any work."""
+    if args.executor == "dask" and not args.scheduler:
+        raise Refused(
+            "--executor dask needs --scheduler ADDRESS, e.g. tcp://10.0.0.5:8786 (the address "
+            "dask-scheduler prints)",
+            2,
+        )
+    if args.executor != "dask" and args.scheduler:
+        raise Refused("--scheduler is the Dask scheduler's address: give --executor dask too", 2)
+    if args.workers < 1:
+        raise Refused(f"--workers must be >= 1, got {args.workers}", 2)
+
+
+@contextlib.contextmanager
+def _executor(args):
+    """The pool tasks run on: None (this process), local processes, or a Dask scheduler."""
+    _check_executor(args)
+    if args.executor == "dask":
+        with _dask_executor(args.scheduler) as pool:
+            yield pool
+        return
+    if args.workers == 1:
+        yield None
+        return
     from concurrent.futures import ProcessPoolExecutor
 
+    # the workers' notes would interleave (one budget's stages with another's): warnings only,
+    # unless --verbose; the parent still logs each task's end and the time left
+    level = 1 if args.verbose else -1
+    with ProcessPoolExecutor(
+        args.workers, initializer=configure_logging, initargs=(level,)
+    ) as pool:
+        yield pool
+
+
+DASK_TIMEOUT_S = 30  # how long to wait for the scheduler before giving up
+
+
+@contextlib.contextmanager
+def _dask_executor(address: str):
+    """A ``concurrent.futures`` executor on the Dask scheduler at ``address`` (dask imported here).
+
+    Its ``submit``/``map`` are what ``run_study(pool=...)`` and the batch use; the workers need
+    this package installed (the same version) to run the tasks.
+    """
+    try:
+        from distributed import Client
+    except ImportError:
+        raise Refused(
+            "--executor dask needs dask.distributed, which is not installed here: "
+            "pip install 'bayes-tfcrds[dask]'",
+            2,
+        ) from None
+    try:
+        client = Client(address, timeout=DASK_TIMEOUT_S)
+    except (OSError, TimeoutError) as exc:
+        raise Refused(
+            f"could not reach the Dask scheduler at {address!r} ({exc}); check the address and "
+            "that dask-scheduler is running",
+            1,
+        ) from None
+    with client:
+        yield client.get_executor()
+
+
+def cmd_study(args) -> int:
     from bayes_tfcrds.studies.registry import run_study
     from bayes_tfcrds.studies.spec import StudyError
 
     try:
-        if args.workers > 1:
-            with ProcessPoolExecutor(max_workers=args.workers) as pool:
-                html_path, pdf_path = run_study(
-                    args.file, args.output, progress=not args.quiet, pool=pool, seed=args.seed
-                )
-        else:
+        with _executor(args) as pool:
+            _say(f"# study {args.file} on {_executor_name(args)}")
             html_path, pdf_path = run_study(
-                args.file, args.output, progress=not args.quiet, seed=args.seed
+                args.file, args.output, progress=not args.quiet, pool=pool, seed=args.seed
             )
     except StudyError as exc:
         return _fail(exc, 2)
@@ -547,15 +740,57 @@ def _seed(text: str) -> int:
 
 
 def _common(sp, seed=0, note=""):
-    """Options every command has (``--seed``), and help that shows defaults."""
+    """Options every command has (``--seed``, ``--quiet``, ``--verbose``), help with defaults."""
     sp.formatter_class = _HelpWithDefaults
     sp.add_argument("--seed", type=_seed, default=seed, help="random seed" + note)
+    talk = sp.add_mutually_exclusive_group()
+    talk.add_argument(
+        "-q",
+        "--quiet",
+        action="store_true",
+        help="no progress and no notes on stderr: warnings and errors only",
+    )
+    talk.add_argument(
+        "-v", "--verbose", action="store_true", help="also debug lines (sampler gates, timings)"
+    )
     return sp
 
 
-def _bundle_and_model(sp, file_optional: bool = False) -> None:
-    """The bundle, its configuration, and the ring-down model (method and window)."""
-    sp.add_argument("file", nargs="?" if file_optional else None)
+def _executor_options(sp, workers: int) -> None:
+    """Where the tasks run: local processes (--workers) or a Dask scheduler (--scheduler)."""
+    sp.add_argument(
+        "--executor",
+        choices=["local", "dask"],
+        default="local",
+        help="local: --workers processes on this machine; dask: the workers of a running Dask "
+        "scheduler (needs pip install 'bayes-tfcrds[dask]')",
+    )
+    sp.add_argument(
+        "--workers",
+        type=int,
+        default=workers,
+        help="local worker processes (2 uses both cores of a small machine)",
+    )
+    sp.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="the Dask scheduler's address with --executor dask, e.g. tcp://10.0.0.5:8786",
+    )
+
+
+def _bundle_and_model(sp, many: bool = False, file_optional: bool = False) -> None:
+    """The bundle (or bundles), its configuration, and the ring-down model (method, window).
+
+    ``file_optional``: the bundle may be absent (``linefit --spectrum`` reads a lab folder).
+    """
+    if many:
+        sp.add_argument(
+            "file",
+            nargs="+",
+            help="measurement bundle(s); with several, each writes into OUTPUT/<bundle stem>/",
+        )
+    else:
+        sp.add_argument("file", nargs="?" if file_optional else None)
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument(
         "--method",
@@ -706,7 +941,7 @@ def _add_budget(sub) -> None:
     sp = _common(
         sub.add_parser("budget", help="posteriors and the GUM line-area budget against CMDS")
     )
-    _bundle_and_model(sp)
+    _bundle_and_model(sp, many=True)
     sp.add_argument("--tcut", type=_one_float, default=[4e-6], help="t_cut of the reported A, s")
     _profile_option(sp)
     from bayes_tfcrds.fit.h_calibration import BEAT_FREE
@@ -724,7 +959,15 @@ def _add_budget(sub) -> None:
         help="longest run per ensemble; a run still missing a gate then is reported as failed "
         "(default max(8 x steps, 24000))",
     )
-    sp.add_argument("--quiet", action="store_true", help="no progress bars")
+    sp.add_argument(
+        "--posterior",
+        choices=["mcmc", "laplace"],
+        default="mcmc",
+        help="mcmc: sampled and gated; laplace: the Gaussian approximation at the least-squares "
+        "fits (seconds instead of minutes; labelled as an approximation, with its measured "
+        "coverage, in every output)",
+    )
+    _executor_options(sp, workers=1)
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.set_defaults(func=cmd_budget)
 
@@ -740,10 +983,7 @@ def _add_study(sub) -> None:
     sp.add_argument(
         "-o", "--output", required=True, help="report folder, e.g. reports/letter_tcut/"
     )
-    sp.add_argument("--quiet", action="store_true", help="no progress bars")
-    sp.add_argument(
-        "--workers", type=int, default=2, help="local worker processes (2 uses both cores)"
-    )
+    _executor_options(sp, workers=2)
     sp.set_defaults(func=cmd_study)
 
 
@@ -767,7 +1007,6 @@ def _add_discover(sub) -> None:
     sp.add_argument(
         "--threshold", type=float, default=10.0, help="Delta BIC an effect needs to be added"
     )
-    sp.add_argument("--quiet", action="store_true", help="no progress bars")
     sp.add_argument(
         "-o", "--output", required=True, help="output folder (discovery.json, discovery.html)"
     )
@@ -788,7 +1027,6 @@ def _add_import(sub) -> None:
         action="store_true",
         help="write a worked example lab folder (a small simulated campaign) to FOLDER instead",
     )
-    sp.add_argument("--quiet", action="store_true", help="no summary line")
     sp.add_argument(
         "-o", "--output", help="bundle (HDF5) to write; with --example, the bundle it came from"
     )
@@ -832,7 +1070,6 @@ def _add_compare(sub) -> None:
         "the comparison unit (default: the weighted mean)",
     )
     sp.add_argument("--correlations", metavar="FILE", help="CSV lab_a,lab_b,r of shared inputs")
-    sp.add_argument("--quiet", action="store_true", help="no list of files written")
     sp.add_argument("-o", "--output", required=True, help="output folder")
     sp.set_defaults(func=cmd_compare)
 
@@ -866,6 +1103,9 @@ def main(argv=None) -> int:
     from bayes_tfcrds.output.files import FolderBusyError, OutputPathError
 
     args = build_parser().parse_args(argv)
+    configure_logging(-1 if args.quiet else 1 if args.verbose else 0)
+    options = {k: v for k, v in vars(args).items() if k not in ("func", "command")}
+    log.debug(f"bayes-tfcrds {__version__} {args.command}: {options}")
     try:
         _check_output(args)
         return int(args.func(args) or 0)

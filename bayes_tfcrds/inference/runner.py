@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import math
 import signal
 import threading
@@ -14,6 +15,9 @@ import numpy as np
 from bayes_tfcrds.inference.diagnostics import Gates, _gate_failures, burn_in, chain_diagnostics
 from bayes_tfcrds.inference.result import SamplingResult, _frozen
 from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _same_rng_state, _StepRecorder
+from bayes_tfcrds.output.progress import progress_bar
+
+log = logging.getLogger(__name__)
 
 
 class _Ensemble:
@@ -204,7 +208,8 @@ def run_ensembles(
     n_walkers: default ``max(32, 4 * ndim)``.
     n_steps, max_steps: first and largest total length per ensemble (burn-in included).
     backend_path: HDF5 file to commit chunks to and resume from (see module docstring).
-    progress: one tqdm bar per ensemble, labelled with ``label``.
+    progress: one bar per ensemble, labelled with ``label`` (periodic log lines when stderr is
+        not a terminal: :func:`bayes_tfcrds.output.progress.progress_bar`).
     pool: object with ``map`` passed to emcee (ignored by emcee when ``vectorize``).
     derived_fn: ``samples (n, ndim) -> {name: (n,) array}``; derived quantities get the
         same diagnostics and gates as the parameters.
@@ -245,16 +250,13 @@ def run_ensembles(
     ]
     bars = []
     if progress:
-        from tqdm.auto import tqdm
-
         prefix = f"{label} " if label else ""
         bars = [
-            tqdm(
+            progress_bar(
                 total=n_steps,
                 initial=min(e.store.iteration, n_steps),
                 desc=f"{prefix}ensemble {e.index}",
                 position=e.index,
-                leave=True,
             )
             for e in ensembles
         ]
@@ -271,6 +273,14 @@ def run_ensembles(
             parts = [e.read(target) for e in ensembles]
             chains, lps, acc = (np.stack(p) for p in zip(*parts))
             result = _evaluate(names, chains, lps, acc, derived_fn, gates, label)
+            log.debug(
+                "%s: %d steps per ensemble, R-hat max %.4g, ESS min %.4g: %s",
+                label or "sampler",
+                target,
+                result.rhat_max,
+                result.ess_min,
+                result.status,
+            )
             if result.passed or target >= max_steps:
                 return result
             target = min(int(max_steps), target + math.ceil(0.5 * target))

@@ -187,7 +187,7 @@ def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
         (bpath, n, study.mcmc_steps, study.t_cut_s, study.profile, study.windows[0], study.seed)
         for n in bundle.configs
     ]
-    results = parallel_map(pool, _budget_config, jobs)
+    results = parallel_map(pool, _budget_config, jobs, progress, "configuration budgets")
     numbers = {"configs": {}}
     rows = []
     ok = []

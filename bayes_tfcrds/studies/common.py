@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_tfcrds.output.progress import progress_bar
 from bayes_tfcrds.studies.spec import Study, StudyError
 
 #: study kinds that compare every configuration with its CMDS reference (A/A_ref); a simulated
@@ -58,8 +59,14 @@ def campaign_of(study: Study, outdir: Path, bundle=None):
     return load_bundle(path), load_truth(path), path
 
 
-def parallel_map(pool, fn, items):
-    """``[fn(i) for i in items]``, through ``pool.map`` when a pool (any executor) is given."""
-    if pool is None:
-        return [fn(i) for i in items]
-    return list(pool.map(fn, items))
+def parallel_map(pool, fn, items, progress: bool = False, label: str = "tasks"):
+    """``[fn(i) for i in items]``, through ``pool.map`` when a pool (any executor) is given.
+
+    ``progress``: count the results as they arrive, with the time left at the mean rate
+    (:func:`bayes_tfcrds.output.progress.progress_bar`).
+    """
+    items = list(items)
+    results = (fn(i) for i in items) if pool is None else pool.map(fn, items)
+    if progress:
+        results = progress_bar(results, total=len(items), desc=label)
+    return list(results)

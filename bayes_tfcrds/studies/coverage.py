@@ -31,6 +31,7 @@ from scipy import stats
 
 from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.output.progress import progress_bar
 from bayes_tfcrds.output.report import git_commit
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.transfer_function import TFParams
@@ -404,9 +405,7 @@ def run_campaigns(
     if pool is None:
         it = jobs
         if progress:
-            from tqdm import tqdm
-
-            it = tqdm(jobs, desc=label)
+            it = progress_bar(jobs, desc=label)
         recs = [campaign_task(j) for j in it]
     else:
         from concurrent.futures import as_completed
@@ -414,9 +413,7 @@ def run_campaigns(
         futs = [pool.submit(campaign_task, j) for j in jobs]
         it = as_completed(futs)
         if progress:
-            from tqdm import tqdm
-
-            it = tqdm(it, total=len(futs), desc=label)
+            it = progress_bar(it, total=len(futs), desc=label)
         for _ in it:
             pass
         recs = [f.result() for f in futs]

@@ -208,7 +208,11 @@ def study_tcut(study, bundle, truth, rep, out, progress=False, pool=None):
         )
         for name in bundle.configs
     ]
-    rows = [r for part in parallel_map(pool, _tcut_config, jobs) for r in part]
+    rows = [
+        r
+        for part in parallel_map(pool, _tcut_config, jobs, progress, "configurations")
+        for r in part
+    ]
     names = list(bundle.configs)
     refs = np.array([next(r["ref_si"] for r in rows if r["config"] == n) for n in names])
     band = (refs.min() / refs.mean() - 1, refs.max() / refs.mean() - 1)

@@ -30,6 +30,7 @@ failed, and its numbers are never given as a result.
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -57,6 +58,7 @@ from bayes_tfcrds.fit.refine import HPrior
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.output.files import atomic_write_text, folder_lock
+from bayes_tfcrds.output.progress import StageClock
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.uncertainty.instrument import cmds_type_b, instrument_rows
 from bayes_tfcrds.uncertainty.monte_carlo import (
@@ -80,12 +82,23 @@ from bayes_tfcrds.uncertainty.propagate import (
     tau_sensitivities,
 )
 
+log = logging.getLogger(__name__)
+
 H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
 # judged relative uncertainty of the Type B u's (GUM G.4.2, dof = 1/2 (du/u)^-2): a width from the
 # spread of a few alternatives (t_cut) is known to about 25 % (8 dof); a width set by a single
 # difference or weight (line-shape model, H model form) to about 50 % (2 dof); u(p), u(T) stated
 # by calibration certificates to two digits to about 10 % (50 dof)
 REL_U_SPREAD, REL_U_ONE_DIFFERENCE, REL_U_CERTIFICATE = 0.25, 0.5, 0.10
+
+#: what each posterior option is, as budget.json and budget.md state it
+POSTERIORS = {
+    "mcmc": "sampled: emcee on the H, line and CMDS posteriors, every run gated by R-hat, ESS "
+    "and chain length in autocorrelation times",
+    "laplace": "Laplace approximation: Gaussian posteriors at the least-squares optima "
+    "(covariances from the fits), no sampler and no convergence gates; it misstates u where a "
+    "posterior is skewed, bounded or multimodal (a line-shape parameter near 0, a second H mode)",
+}
 
 
 @dataclass(frozen=True)
@@ -107,6 +120,10 @@ class BudgetOptions:
     n_h_draws: int = 1000
 
     def __post_init__(self):
+        if self.posterior not in POSTERIORS:
+            raise ValueError(
+                f"posterior must be one of {sorted(POSTERIORS)}, got {self.posterior!r}"
+            )
         bad = [n for n in self.refine_free if n not in BEAT_FREE]
         if bad:
             raise ValueError(
@@ -842,6 +859,11 @@ def _summary(
         "window": options.window if options.method == "tf-crds" else None,
         "t_cut_s": options.t_cut_s,
         "profile": options.profile,
+        "posterior": {
+            "method": options.posterior,
+            "approximation": options.posterior == "laplace",
+            "description": POSTERIORS[options.posterior],
+        },
         "line_area": {
             "value": float(line_area_to_cm2(a_hat)),
             "u": float(line_area_to_cm2(u_a)),
@@ -1062,6 +1084,7 @@ def run_budget(
     A, S and A/A_ref; the summary with its convergence gates; the decay-time table.
     """
     rng = np.random.default_rng(0) if rng is None else rng
+    log.debug(f"budget of {config.name}: {options}")
     inp = _inputs(bundle, config, options, rng, outdir, progress)
     if outdir is None:
         return _budget(inp)
@@ -1074,16 +1097,21 @@ def run_budget(
 def _budget(inp: _Inputs) -> BudgetResult:
     """Steps 1-10 of :func:`run_budget` on checked inputs (the chain folder claimed)."""
     options, config = inp.options, inp.config
+    tf = options.method == "tf-crds"
+    clock = StageClock(9 if tf else 6, f"budget {config.name} ({options.posterior})")
     runs = {}
     h_star = h_draws = refined = h_parts = beat = None
-    if options.method == "tf-crds":  # 1. H
+    if tf:  # 1. H
         beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
             config, options, inp.streams["h"], inp.chain_file("h"), inp.progress, inp.beat
         )
         if h_run is not None:
             runs["h"] = h_run
+        clock.done("H posterior")
     dt = _decay_times(inp, h_star)  # 2. decay times
+    clock.done("decay times")
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
+    clock.done("line posterior")
     a_noise = line_flat[:, dt.lsq.names.index("line_area")]
     u_dir = float(np.std(a_noise))
     sens_a, h_rows, d_h = {}, ([], {}), None
@@ -1104,14 +1132,18 @@ def _budget(inp: _Inputs) -> BudgetResult:
             beat.dof,
         )
         d_h = h_shifts(sens.area_kernel, h_draws, h_star, 1)[:, 0]
+        clock.done("H into A")
     else:
         a_total = a_noise.copy()
     a_ref, dof_ref = _reference_area(inp, runs)  # 6. A_ref
+    clock.done("A_ref from CMDS")
     form = None
-    if options.method == "tf-crds":  # 6b. the form of the H model
+    if tf:  # 6b. the form of the H model
         form_row, form = _h_model_form(inp, dt, beat, refined)
         h_rows = (h_rows[0] + [form_row], h_rows[1])
+        clock.done("H model form")
     instrument = instrument_rows(config, options, h_star, dt.spec, inp.gd, inp.nu_ref)  # 6c.
+    clock.done("instrument rows")
     budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument)  # 7-9. budgets
     nu_a = budget_a.effective_dof
     budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u, dof_a=nu_a)
@@ -1131,6 +1163,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
         summary["transfer_function"]["refined"] = list(refined.free)
         summary["transfer_function"]["refined_asked"] = list(options.refine_free)
     _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
+    clock.done("budgets")
     samples = {
         "a_total": a_total,
         "a_noise": a_noise,
@@ -1138,6 +1171,8 @@ def _budget(inp: _Inputs) -> BudgetResult:
         "h_draws": h_draws,
         "a_shift_h": d_h,  # first-order shift of A (Hz/m) that each H draw causes
     }
+    tau_table = _tau_table(inp, dt, h_star, h_draws)
+    clock.done("decay-time table")
     return BudgetResult(
         summary=summary,
         budget_a=budget_a,
@@ -1145,7 +1180,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
         budget_ratio=budget_ratio,
         samples=samples,
         runs=runs,
-        tau_table=_tau_table(inp, dt, h_star, h_draws),
+        tau_table=tau_table,
         refined=refined,
         monte_carlo=mc,
     )

@@ -19,7 +19,7 @@ from bayes_tfcrds.core.constants import line_area_to_cm2
 from bayes_tfcrds.core.gum import Budget, Component, format_uncertainty, format_value
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import pyplot
-from bayes_tfcrds.uncertainty.line_budget import BudgetResult
+from bayes_tfcrds.uncertainty.line_budget import POSTERIORS, BudgetResult
 from bayes_tfcrds.uncertainty.monte_carlo import edge_units
 
 
@@ -40,6 +40,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
     summary = dict(result.summary)
     if seed is not None:
         summary["seed"] = seed
+    if "posterior" in summary:
+        summary["posterior"] = posterior_record(summary["posterior"]["method"])
     atomic_write_text(out / "budget.json", json.dumps(summary, indent=2, default=float) + "\n")
     written.append(out / "budget.json")
     tables = [result.budget_a, result.budget_s] + (
@@ -51,6 +53,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         + monte_carlo_markdown(mc, *_to_cm2(b.unit))
         for b, mc in zip(tables, mcs)
     )
+    if "posterior" in summary:
+        md = f"{posterior_markdown(summary['posterior'])}\n\n{md}"
     banner = failed_banner(result)
     if banner:
         md = f"# {banner}\n\n{md}"
@@ -84,6 +88,103 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         plt.close(fig)
         written.append(out / f"corner_{key}.png")
     return written
+
+
+#: the coverage study of the Laplace posterior, as committed in the source repository
+COVERAGE_NUMBERS = Path("reports") / "coverage" / "numbers.json"
+COVERAGE_QUANTITIES = ("A", "A/A_ref", "A (u_c)", "A/A_ref (u_c)")
+
+
+def laplace_coverage(path=None) -> dict | None:
+    """The measured coverage of the Laplace posterior, read from the coverage study's numbers.
+
+    ``path`` defaults to reports/coverage/numbers.json beside the package (a source checkout);
+    None when that file is absent (an installed package) or is not a Laplace coverage study.
+    Returns the file, the number of campaigns, and per quantity the fraction of campaigns whose
+    68 % and 95 % intervals held the truth.
+    """
+    path = Path(__file__).resolve().parents[2] / COVERAGE_NUMBERS if path is None else Path(path)
+    try:
+        numbers = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if numbers.get("posterior") != "laplace":
+        return None
+    sums = numbers.get("summaries", {})
+    return {
+        "source": str(COVERAGE_NUMBERS),
+        "n_campaigns": numbers.get("n_campaigns"),
+        "coverage": {
+            q: {"68": sums[q]["coverage_68"], "95": sums[q]["coverage_95"]}
+            for q in COVERAGE_QUANTITIES
+            if q in sums
+        },
+        "mcmc_cross_check_campaigns": (numbers.get("mcmc_check") or {}).get("n"),
+    }
+
+
+def posterior_record(method: str, coverage_path=None) -> dict:
+    """budget.json's ``posterior``: the method and whether it is an approximation.
+
+    For the Laplace approximation, also its measured coverage (:func:`laplace_coverage`).
+    """
+    record = {
+        "method": method,
+        "approximation": method == "laplace",
+        "description": POSTERIORS[method],
+    }
+    if method == "laplace":
+        record["measured_coverage"] = laplace_coverage(coverage_path) or {
+            "source": f"{COVERAGE_NUMBERS} of the source repository (not beside this installation)"
+        }
+    return record
+
+
+def posterior_line(record: dict) -> str:
+    """One line naming the posterior; for Laplace, the approximation and its measured coverage."""
+    if not record["approximation"]:
+        return f"posterior: {record['method']} ({record['description']})"
+    cov = record.get("measured_coverage", {})
+    figures = "; ".join(
+        f"{q} {100 * c['68']:.1f} % / {100 * c['95']:.1f} %"
+        for q, c in cov.get("coverage", {}).items()
+    )
+    measured = (
+        f"measured coverage of the 68 % / 95 % intervals over {cov['n_campaigns']} simulated "
+        f"campaigns: {figures} ({cov['source']})"
+        if figures
+        else f"measured coverage: {cov.get('source')}"
+    )
+    return f"posterior: APPROXIMATION, {record['description']}; {measured}"
+
+
+def posterior_markdown(record: dict) -> str:
+    """The posterior section at the top of budget.md."""
+    if not record["approximation"]:
+        return f"Posterior: **{record['method']}**, {record['description']}."
+    cov = record.get("measured_coverage", {})
+    rows = [
+        "## Posterior: Laplace approximation",
+        "",
+        f"{record['description'][0].upper()}{record['description'][1:]}.",
+        "",
+    ]
+    if cov.get("coverage"):
+        rows += [
+            f"Measured coverage over {cov['n_campaigns']} simulated campaigns ({cov['source']}): "
+            "A and A/A_ref are the posterior's own intervals (ring-down noise and H); the (u_c) "
+            "rows are those of the full GUM u_c, Type B rows included.",
+            "",
+            "| quantity | 68 % interval holds the truth | 95 % interval holds the truth |",
+            "|---|---|---|",
+        ]
+        rows += [
+            f"| {q} | {100 * c['68']:.1f} % | {100 * c['95']:.1f} % |"
+            for q, c in cov["coverage"].items()
+        ]
+    else:
+        rows.append(f"Measured coverage: {cov.get('source')}.")
+    return "\n".join(rows)
 
 
 def failed_banner(result: BudgetResult) -> str:

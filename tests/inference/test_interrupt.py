@@ -158,7 +158,7 @@ def _run(bundle, out):
 
 
 class _Watched:
-    """A budget command whose stderr (tqdm progress) is read as it is written."""
+    """A budget command whose stderr (progress lines) is read as it is written."""
 
     def __init__(self, bundle, out):
         self.proc = subprocess.Popen(
@@ -197,7 +197,9 @@ class _Watched:
 def _sampling_line_ensemble_1(text):
     """True once ensemble 1 of the line posterior has taken a step: ensemble 0 of that run (and the
     whole H run before it) is then committed, and ensembles 2 and 3 have not started."""
-    steps = re.findall(r"line \| CRDS ensemble 1:\s*\d+%\|[^|]*\|\s*(\d+)/", text)
+    # stderr is a pipe here: progress comes as plain lines ("...ensemble 1: 20/200 (10 %), ..."),
+    # a line every 10 % of the steps (bayes_tfcrds.output.progress)
+    steps = re.findall(r"line \| CRDS ensemble 1: (\d+)/", text)
     return any(int(s) >= 1 for s in steps)
 
 
