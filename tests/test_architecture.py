@@ -26,6 +26,7 @@ LAYERS = (
     "discovery",
     "studies",
     "cli",
+    "__main__",
     "__init__",
 )
 
