@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.output.plotting import literal, pyplot
+from bayes_tfcrds.output.plotting import legend_above, literal, pyplot
 from bayes_tfcrds.studies.common import parallel_map
 
 
@@ -143,7 +143,8 @@ def _comparison_figure(plt, rep, ok: list) -> None:
     ax1.errorbar(x, [s["ratio"]["value"] for _, s in ok], [s["ratio"]["u"] for _, s in ok], fmt="o")
     ax1.axhline(1, color="0.5")
     ax1.set_xticks(x, [literal(n) for n, _ in ok])
-    ax1.set_ylabel("A/A_ref (TF-CRDS)")
+    ax1.set_ylabel("A/A_ref, TF-CRDS (dimensionless)")
+    ax1.set_xlabel("configuration")
     svals = [s["intensity"]["value"] for _, s in ok]
     ax2.errorbar(x, svals, [s["intensity"]["u"] for _, s in ok], fmt="o")
     ref = ok[0][1]["intensity"]
@@ -155,8 +156,8 @@ def _comparison_figure(plt, rep, ok: list) -> None:
     )
     ax2.set_xticks(x, [literal(n) for n, _ in ok])
     ax2.set_ylabel("S(296 K) (cm/molecule)")
-    ax2.legend(fontsize=7)
-    fig.tight_layout()
+    ax2.set_xlabel("configuration")
+    legend_above(ax2, ncol=1)
     rep.add_figure(
         fig,
         "TF-CRDS line areas relative to CMDS (left) and line intensities against the reference "

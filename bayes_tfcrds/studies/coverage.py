@@ -521,13 +521,14 @@ def _rank_figure(rep, sums, n, title):
         )
         ax.axhspan(lo, hi, color="0.5", alpha=0.3, zorder=3, label="99 % band, uniform")
         ax.axhline(s["n"] / b, color="0.2", lw=0.8, zorder=3)
-        ax.set_title(f"{LABELS[k]}\nchi2 p = {s['rank_p']:.2f}", fontsize=8)
-        ax.set_xlabel("normalised rank of truth", fontsize=8)
+        ax.set_title(f"{LABELS[k]}\nchi2 p = {s['rank_p']:.2f}")
+        ax.set_xlabel("normalised rank of truth (0-1)")
         ax.set_xlim(0, 1)
-    np.atleast_1d(axes)[0].set_ylabel("campaigns")
-    np.atleast_1d(axes)[0].legend(fontsize=6, loc="lower left")
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    np.atleast_1d(axes)[0].set_ylabel("campaigns per bin (count)")
+    # one legend for the row, under the panels: inside, it hid the first histogram's low bins
+    handles, labels = np.atleast_1d(axes)[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center")
+    fig.suptitle(title)
     rep.add_figure(
         fig,
         f"Rank histograms over {n} campaigns: the posterior CDF at the truth, in "
@@ -554,8 +555,8 @@ def _coverage_figure(rep, sums):
         ax.errorbar(c, y, xerr=e, fmt="o", color="tab:blue", label="observed +/- 1 binomial se")
         ax.set_yticks(y, [LABELS[k] for k in keys])
         ax.set_xlabel(f"coverage of the {key} % interval (%)")
-    axes[0].legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=2)
     rep.add_figure(
         fig,
         "Coverage of estimate +/- z u (z = 0.994 for 68 %, 1.960 for 95 %) over the campaigns, "
