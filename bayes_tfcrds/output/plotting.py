@@ -103,4 +103,5 @@ def draw_caption(fig, caption: str, number: int | None = None, font_pt: float = 
     """
     head = f"Figure {number}. " if number is not None else ""
     text = caption_lines(head + caption, fig.get_figwidth(), font_pt)
-    return fig.text(0.01, -0.01, text, ha="left", va="top", fontsize=font_pt, wrap=False)
+    # captions hold names from files: drawn as they are, never parsed as mathtext ("$")
+    return fig.text(0.01, -0.01, text, ha="left", va="top", fontsize=font_pt, parse_math=False)
