@@ -98,10 +98,13 @@ def caption_lines(caption: str, width_in: float, font_pt: float = 8.5) -> str:
 def draw_caption(fig, caption: str, number: int | None = None, font_pt: float = 8.5):
     """Draw ``caption`` under ``fig`` (as in a paper: "Figure n. ..."); returns the text artist.
 
-    The text is placed below the figure area; save with ``bbox_inches="tight"`` so the page
-    grows to hold it.
+    The text is placed under everything already drawn (tick labels and legends below the axes
+    included); save with ``bbox_inches="tight"`` so the page grows to hold it.
     """
     head = f"Figure {number}. " if number is not None else ""
     text = caption_lines(head + caption, fig.get_figwidth(), font_pt)
+    fig.canvas.draw()  # runs the layout, so the extent below is where things really are
+    bottom_in = fig.get_tightbbox(fig.canvas.get_renderer()).y0
+    y = (bottom_in - 0.08) / fig.get_figheight()  # a 0.08 in gap under the lowest artist
     # captions hold names from files: drawn as they are, never parsed as mathtext ("$")
-    return fig.text(0.01, -0.01, text, ha="left", va="top", fontsize=font_pt, parse_math=False)
+    return fig.text(0.01, y, text, ha="left", va="top", fontsize=font_pt, parse_math=False)
