@@ -149,12 +149,14 @@ def corner_figure(run_key: str, run, truth=None, config=None):
     for i, label in enumerate(labels):
         symbol, _, unit = label.partition(" (")
         unit, est = unit.rstrip(")"), estimate_text(data[:, i])
-        if unit.startswith("10"):  # a scaled unit: "A = (1.3141 ± 0.0014) × 10⁻⁷ cm⁻²"
-            title = f"{symbol} = ({est}) × {unit}"
+        # two lines (symbol, then value): one line ran into the next panel; nothing is drawn
+        # above a diagonal panel, so the second line has room
+        if unit.startswith("10"):  # a scaled unit: "A =\n(1.3141 ± 0.0014) × 10⁻⁷ cm⁻²"
+            title = f"{symbol} =\n({est}) × {unit}"
         else:
-            title = f"{symbol} = {est} {unit}".rstrip()
+            title = f"{symbol} =\n{est} {unit}".rstrip()
         fig.axes[i * (k + 1)].set_title(title, fontsize=8)
-    fig.subplots_adjust(left=0.13, bottom=0.13, right=0.97, top=0.92, wspace=0.1, hspace=0.1)
+    fig.subplots_adjust(left=0.13, bottom=0.13, right=0.96, top=0.9, wspace=0.1, hspace=0.1)
     run_title = {"h": "H | beat note", "line": "line | ring-downs", "cmds": "A_ref | CMDS"}
     fig.suptitle(
         f"posterior {run_title.get(run_key, run_key)}"

@@ -210,8 +210,8 @@ def test_corner_titles_round_to_two_digits_of_the_uncertainty(tmp_path):
     names, flat = _line_draws(rng, 1000)
     fig = corner_figure("line", _Run(names, flat), None, "D2")
     titles = [a.get_title() for a in fig.axes if a.get_title()]
-    assert titles[0].startswith("A = (1.3147") and titles[0].endswith("× 10⁻⁷ cm⁻²")
-    assert titles[2].startswith("Γ0 = 10.0") and titles[2].endswith(" MHz")
+    assert titles[0].startswith("A =\n(1.3147") and titles[0].endswith("× 10⁻⁷ cm⁻²")
+    assert titles[2].startswith("Γ0 =\n10.0") and titles[2].endswith(" MHz")
     png = tmp_path / "c.png"
     fig.savefig(png, dpi=RASTER_DPI)
     assert _png_dpi(png.read_bytes()) >= RASTER_DPI - 0.01
