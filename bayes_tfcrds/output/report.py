@@ -24,13 +24,14 @@ from bayes_tfcrds._version import __version__
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text
 from bayes_tfcrds.output.plotting import RASTER_DPI, draw_caption, pyplot
 
-SVG_LIMIT_BYTES = 1_500_000  # above this an embedded figure becomes a PNG (report size)
+SVG_LIMIT_BYTES = 1_000_000  # above this an embedded figure becomes a PNG (report size)
 
 
 def figure_image(fig) -> tuple[str, bytes]:
     """(MIME type, bytes) of ``fig`` for an HTML report: SVG, or a PNG when the SVG is too big."""
     buf = io.BytesIO()
-    fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Date": None})
+    # dense traces drawn with rasterized=True are embedded as RASTER_DPI images in the SVG
+    fig.savefig(buf, format="svg", dpi=RASTER_DPI, bbox_inches="tight", metadata={"Date": None})
     if buf.tell() <= SVG_LIMIT_BYTES:
         return "image/svg+xml", buf.getvalue()
     buf = io.BytesIO()

@@ -61,6 +61,7 @@ def _figure_transfer_function(plt, rep, name, cfg, cal, tf, extremes, tc) -> Non
             spec[1:] / spec[1:].max(),
             color=col,
             alpha=0.15,
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
             label=f"ring-down spectrum, τ = {tf.tau_s[i, 0] * 1e6:.1f} {US}",
         )
     ax2.set_yscale("log")
@@ -95,6 +96,7 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             rd.signal_v[i, sel] * 1e3,
             color=col,
             lw=0.8,
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
             label=f"τ = {tf.tau_s[i, 0] * 1e6:.1f} {US}",
         )
         rc = crds.residuals_v[i, 0, sel] * 1e3
@@ -104,6 +106,7 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             rc,
             color=col,
             lw=0.5,
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
             label=f"CRDS residual (RMS {np.sqrt(np.mean(rc**2)):.3f} mV)",
         )
         axes[1 if i == i_long else 2].plot(
@@ -111,6 +114,7 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             rt,
             color="k",
             lw=0.5,
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
             label=f"TF-CRDS residual (RMS {np.sqrt(np.mean(rt**2)):.3f} mV)",
         )
         numbers[f"{name}_residual_rms_mv_tau{tf.tau_s[i, 0] * 1e6:.0f}us"] = {
