@@ -416,6 +416,7 @@ def _budget_options(args):
 
 
 def cmd_budget(args) -> int:
+    from bayes_tfcrds.bundle.reader import load_truth
     from bayes_tfcrds.fit.h_calibration import AnalysisError
     from bayes_tfcrds.fit.line_analysis import LineFitError
     from bayes_tfcrds.fit.refine import tension_lines
@@ -445,7 +446,7 @@ def cmd_budget(args) -> int:
             )
         except (LineFitError, AnalysisError, ValueError) as exc:
             return _fail(exc, 1)
-        write_outputs(res, args.output, seed=args.seed)
+        write_outputs(res, args.output, seed=args.seed, truth=load_truth(args.file[0]))
     except KeyboardInterrupt:
         print(file=sys.stderr)
         _say(

@@ -9,7 +9,7 @@ import numpy as np
 
 from bayes_tfcrds.discovery.workflow import DiscoveryResult
 from bayes_tfcrds.output.files import atomic_write_text
-from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.output.plotting import MICROSECOND, dodge, legend_outside, pyplot
 
 # --------------------------------------------------------------------------- report
 
@@ -99,18 +99,20 @@ def _candidates_tables(rep, result) -> None:
 def _figures(plt, rep, result) -> None:
     """The gaps shrinking step by step; residuals of the start and final models."""
     gap_names = list(result.evaluations[0].gaps)
-    fig, ax = plt.subplots(figsize=(8, 4))
+    fig, ax = plt.subplots(figsize=(7.5, 4))
     xs = np.arange(len(result.evaluations))
-    for g in gap_names:
+    # every gap is evaluated at every step: set them side by side so equal values stay visible
+    for g, dx in zip(gap_names, dodge(len(gap_names), 0.04)):
         zs = [abs(e.gaps[g]["z"]) if g in e.gaps else np.nan for e in result.evaluations]
-        ax.plot(xs, np.maximum(zs, 1e-2), "o-", label=g)
+        ax.plot(xs + dx, np.maximum(zs, 1e-2), "o-", label=g)
     ax.axhline(3, color="k", ls=":", lw=1)
     ax.set_yscale("log")
     ax.set_xticks(xs, ["start"] + result.effects_added, rotation=20)
-    ax.set_ylabel("|z| of each gap")
-    ax.legend(fontsize=7, ncol=2)
+    ax.set_ylabel("|z| of each gap (standard deviations)")
+    ax.set_xlabel("model after each step (effect added)")
+    legend_outside(ax)
     rep.add_figure(fig, "Gaps shrinking: |z| of every gap metric after each step (dotted: 3 sigma)")
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+    fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.4))
     for e, lab in ((result.evaluations[0], "start"), (result.evaluations[-1], "final")):
         lf = e.lines[0]
         order = np.argsort(e.detuning)
@@ -123,12 +125,13 @@ def _figures(plt, rep, result) -> None:
             tb[:n].reshape(-1, nbin).mean(1) * np.sqrt(nbin * e.resid_first.shape[0]),
             label=lab,
         )
-    axes[0].set_xlabel("detuning (GHz)")
-    axes[0].set_ylabel("spectrum residual / u")
-    axes[1].set_xlabel("time after t_cut (us)")
-    axes[1].set_ylabel("stacked transient residual (z per bin)")
+    axes[0].set_xlabel("detuning ν − ν₀ (GHz)")
+    axes[0].set_ylabel("spectrum residual (units of u)")
+    axes[1].set_xlabel(f"time after t_cut ({MICROSECOND})")
+    axes[1].set_ylabel("stacked transient residual\n(standard deviations per bin)")
     for a in axes:
-        a.legend(fontsize=8)
+        a.axhline(0, color="0.5", lw=0.6)
+    legend_outside(axes[1])
     rep.add_figure(
         fig,
         "Residuals of the start and final models: spectrum (left) and transients stacked over "

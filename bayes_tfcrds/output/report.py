@@ -22,7 +22,21 @@ from pathlib import Path
 
 from bayes_tfcrds._version import __version__
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text
-from bayes_tfcrds.output.plotting import pyplot
+from bayes_tfcrds.output.plotting import RASTER_DPI, draw_caption, pyplot
+
+SVG_LIMIT_BYTES = 1_000_000  # above this an embedded figure becomes a PNG (report size)
+
+
+def figure_image(fig) -> tuple[str, bytes]:
+    """(MIME type, bytes) of ``fig`` for an HTML report: SVG, or a PNG when the SVG is too big."""
+    buf = io.BytesIO()
+    # dense traces drawn with rasterized=True are embedded as RASTER_DPI images in the SVG
+    fig.savefig(buf, format="svg", dpi=RASTER_DPI, bbox_inches="tight", metadata={"Date": None})
+    if buf.tell() <= SVG_LIMIT_BYTES:
+        return "image/svg+xml", buf.getvalue()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=RASTER_DPI, bbox_inches="tight", metadata={"Software": None})
+    return "image/png", buf.getvalue()
 
 
 @dataclass
@@ -54,12 +68,13 @@ class Report:
         )
 
     def add_figure(self, fig, caption=""):
-        """Embed a matplotlib figure as a compressed PNG (and keep it for the PDF)."""
-        buf = io.BytesIO()
-        fig.savefig(buf, format="png", dpi=80, bbox_inches="tight", metadata={"Software": None})
-        self.blocks.append(
-            ("figure", (base64.b64encode(buf.getvalue()).decode("ascii"), str(caption)))
-        )
+        """Embed a matplotlib figure as vector SVG (and keep it for the PDF).
+
+        A figure whose SVG would exceed :data:`SVG_LIMIT_BYTES` (long ring-down traces) is
+        embedded as a :data:`RASTER_DPI` dpi PNG instead, so the report stays small enough to open.
+        """
+        fmt, data = figure_image(fig)
+        self.blocks.append(("figure", (fmt, base64.b64encode(data).decode("ascii"), str(caption))))
         self.figures.append((fig, str(caption)))
 
     def add_diagnostic(self, name, passed: bool, detail=""):
@@ -104,10 +119,10 @@ class Report:
                 parts += ["<tr>" + "".join(f"<td>{e(c)}</td>" for c in r) + "</tr>" for r in rows]
                 parts.append("</table>")
             elif kind == "figure":
-                data, caption = payload
+                fmt, data, caption = payload
                 parts.append(
                     f"<figure><img alt='{e(caption)}' "
-                    f"src='data:image/png;base64,{data}'>"
+                    f"src='data:{fmt};base64,{data}'>"
                     f"<figcaption>{e(caption)}</figcaption></figure>"
                 )
         parts.append(
@@ -148,11 +163,22 @@ class Report:
         atomic_write_text(html_path, self.to_html())
         pdf_path = out / f"{stem}.pdf"
         with atomic_path(pdf_path) as tmp_pdf:
-            with PdfPages(
-                tmp_pdf, metadata={"Title": self.title, "CreationDate": None, "ModDate": None}
-            ) as pdf:
-                for fig, _ in self.figures:
-                    pdf.savefig(fig)
+            meta = {
+                "Title": self.title,
+                "Subject": "; ".join(
+                    f"Figure {i + 1}: {c}" for i, (_, c) in enumerate(self.figures)
+                ),
+                "CreationDate": None,
+                "ModDate": None,
+            }
+            with PdfPages(tmp_pdf, metadata=meta) as pdf:
+                for i, (fig, caption) in enumerate(self.figures):
+                    # the caption a reader sees, under the figure as in a paper; the page grows
+                    # to hold it (bbox_inches="tight")
+                    text = draw_caption(fig, caption, number=i + 1) if caption else None
+                    pdf.savefig(fig, bbox_inches="tight", pad_inches=0.1)
+                    if text is not None:
+                        text.remove()
         for fig, _ in self.figures:
             plt.close(fig)
         return html_path, pdf_path

@@ -63,7 +63,7 @@ def budget_task(job: BudgetJob) -> dict:
     Returns ``bundle``, ``output``, ``status`` (``ok``, ``failed: ...`` for gates not met, or
     ``error: ...`` for a refused input) and the budget's ``summary`` (None on error).
     """
-    from bayes_tfcrds.bundle.reader import load_bundle
+    from bayes_tfcrds.bundle.reader import load_bundle, load_truth
     from bayes_tfcrds.bundle.records import BundleError
     from bayes_tfcrds.uncertainty.line_budget import run_budget
     from bayes_tfcrds.uncertainty.outputs import write_outputs
@@ -75,7 +75,7 @@ def budget_task(job: BudgetJob) -> dict:
         res = run_budget(
             bundle, config, job.options, np.random.default_rng(job.seed), outdir=job.outdir
         )
-        write_outputs(res, job.outdir, seed=job.seed)
+        write_outputs(res, job.outdir, seed=job.seed, truth=load_truth(job.bundle_path))
     except BundleError as exc:
         record["status"] = f"error: {exc.one_line()}"
         return record

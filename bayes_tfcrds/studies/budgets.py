@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.output.plotting import literal, pyplot
+from bayes_tfcrds.output.plotting import legend_above, literal, pyplot
 from bayes_tfcrds.studies.common import parallel_map
 
 
@@ -138,29 +138,32 @@ def _consistency(rep, ok: list) -> dict:
 
 def _comparison_figure(plt, rep, ok: list) -> None:
     """A/A_ref per configuration, and S against the reference intensity."""
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.8))
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(7.5, 3.6))
     x = np.arange(len(ok))
     ax1.errorbar(x, [s["ratio"]["value"] for _, s in ok], [s["ratio"]["u"] for _, s in ok], fmt="o")
     ax1.axhline(1, color="0.5")
     ax1.set_xticks(x, [literal(n) for n, _ in ok])
-    ax1.set_ylabel("A/A_ref (TF-CRDS)")
-    svals = [s["intensity"]["value"] for _, s in ok]
-    ax2.errorbar(x, svals, [s["intensity"]["u"] for _, s in ok], fmt="o")
+    ax1.set_ylabel("A/A_ref, TF-CRDS (dimensionless)")
+    ax1.set_xlabel("configuration")
+    unit = 1e-25  # S drawn in 10^-25 cm/molecule: no "1e-25" offset text above the axes
+    svals = [s["intensity"]["value"] / unit for _, s in ok]
+    ax2.errorbar(x, svals, [s["intensity"]["u"] / unit for _, s in ok], fmt="o")
     ref = ok[0][1]["intensity"]
     ax2.axhspan(
-        ref["reference"] - ref["reference_u"],
-        ref["reference"] + ref["reference_u"],
+        (ref["reference"] - ref["reference_u"]) / unit,
+        (ref["reference"] + ref["reference_u"]) / unit,
         color="0.85",
-        label="8.0603(70)e-25 (Cygan et al. 2025)",
+        label="reference S, Cygan et al. 2025",
     )
     ax2.set_xticks(x, [literal(n) for n, _ in ok])
-    ax2.set_ylabel("S(296 K) (cm/molecule)")
-    ax2.legend(fontsize=7)
-    fig.tight_layout()
+    ax2.set_ylabel("S(296 K) (10⁻²⁵ cm/molecule)")
+    ax2.set_xlabel("configuration")
+    legend_above(ax2, ncol=1)
     rep.add_figure(
         fig,
         "TF-CRDS line areas relative to CMDS (left) and line intensities against the reference "
-        "value (right), both at 296 K, with standard uncertainties from the budgets.",
+        "value 8.0603(70) × 10⁻²⁵ cm/molecule (Cygan et al. 2025; grey band, right), both at "
+        "296 K, with standard uncertainties from the budgets.",
     )
 
 

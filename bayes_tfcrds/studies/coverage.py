@@ -544,7 +544,7 @@ def settings_of(study) -> CoverageSettings:
 def _rank_figure(rep, sums, n, title):
     plt = pyplot()
     keys = list(sums)
-    fig, axes = plt.subplots(1, len(keys), figsize=(2.6 * len(keys), 3.0), sharey=True)
+    fig, axes = plt.subplots(1, len(keys), figsize=(max(1.9 * len(keys), 3.0), 3.2), sharey=True)
     for ax, k in zip(np.atleast_1d(axes), keys):
         s = sums[k]
         b = s["bins"]
@@ -558,15 +558,15 @@ def _rank_figure(rep, sums, n, title):
             edgecolor="k",
             lw=0.4,
         )
-        ax.axhspan(lo, hi, color="0.5", alpha=0.3, zorder=3, label="99 % band, uniform")
+        ax.axhspan(lo, hi, color="0.5", alpha=0.3, zorder=3)
         ax.axhline(s["n"] / b, color="0.2", lw=0.8, zorder=3)
-        ax.set_title(f"{LABELS[k]}\nchi2 p = {s['rank_p']:.2f}", fontsize=8)
-        ax.set_xlabel("normalised rank of truth", fontsize=8)
+        ax.set_title(f"{LABELS[k]}\nchi2 p = {s['rank_p']:.2f}")
         ax.set_xlim(0, 1)
-    np.atleast_1d(axes)[0].set_ylabel("campaigns")
-    np.atleast_1d(axes)[0].legend(fontsize=6, loc="lower left")
-    fig.suptitle(title, fontsize=9)
-    fig.tight_layout()
+    np.atleast_1d(axes)[0].set_ylabel("campaigns per bin (count)")
+    # one x label for the row (four copies ran into each other); the grey band is explained in
+    # the caption (a legend inside hid the first histogram's low bins)
+    fig.supxlabel("normalised rank of the truth in the posterior (0-1)", fontsize=9)
+    fig.suptitle(title)
     rep.add_figure(
         fig,
         f"Rank histograms over {n} campaigns: the posterior CDF at the truth, in "
@@ -579,7 +579,7 @@ def _rank_figure(rep, sums, n, title):
 def _coverage_figure(rep, sums):
     plt = pyplot()
     keys = list(sums)
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), sharey=True)
+    fig, axes = plt.subplots(1, 2, figsize=(7.5, 3.4), sharey=True)
     for ax, p in zip(axes, LEVELS):
         key = int(100 * p)
         y = np.arange(len(keys))
@@ -587,14 +587,15 @@ def _coverage_figure(rep, sums):
         e = [100 * sums[k][f"se_{key}"] for k in keys]
         se0 = 100 * sums[keys[0]][f"se_nominal_{key}"]
         ax.axvspan(
-            100 * p - 2 * se0, 100 * p + 2 * se0, color="0.88", label="nominal +/- 2 binomial sd"
+            100 * p - 2 * se0, 100 * p + 2 * se0, color="0.88", label="nominal ± 2 binomial sd"
         )
         ax.axvline(100 * p, color="0.3", lw=0.8)
-        ax.errorbar(c, y, xerr=e, fmt="o", color="tab:blue", label="observed +/- 1 binomial se")
+        ax.errorbar(c, y, xerr=e, fmt="o", color="tab:blue", label="observed ± 1 binomial se")
         ax.set_yticks(y, [LABELS[k] for k in keys])
         ax.set_xlabel(f"coverage of the {key} % interval (%)")
-    axes[0].legend(fontsize=7, loc="lower left")
-    fig.tight_layout()
+    # one legend above both panels, off the points
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside upper center", ncol=2)
     rep.add_figure(
         fig,
         "Coverage of estimate +/- z u (z = 0.994 for 68 %, 1.960 for 95 %) over the campaigns, "

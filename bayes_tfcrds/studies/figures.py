@@ -9,7 +9,15 @@ from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import analyse_line, doppler_of
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import crds_spectrum
-from bayes_tfcrds.output.plotting import literal, pyplot
+from bayes_tfcrds.output.plotting import (
+    MICROSECOND as US,
+)
+from bayes_tfcrds.output.plotting import (
+    dodge,
+    legend_outside,
+    literal,
+    pyplot,
+)
 from bayes_tfcrds.physics.transfer_function import transfer_function
 
 
@@ -53,16 +61,19 @@ def _figure_transfer_function(plt, rep, name, cfg, cal, tf, extremes, tc) -> Non
             spec[1:] / spec[1:].max(),
             color=col,
             alpha=0.15,
-            label=f"ring-down spectrum, tau = {tf.tau_s[i, 0] * 1e6:.1f} us",
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
+            label=f"ring-down spectrum, τ = {tf.tau_s[i, 0] * 1e6:.1f} {US}",
         )
     ax2.set_yscale("log")
     ax2.set_ylim(1e-4, 2)
-    ax2.set_ylabel("ring-down Fourier amplitude (norm.)")
-    ax.set_xlabel("frequency (Hz)")
-    ax.set_ylabel("|H(f)|")
+    ax2.set_ylabel("ring-down Fourier amplitude (normalised to peak)")
+    ax.set_xlabel("frequency f (Hz)")
+    ax.set_ylabel("|H(f)| / |H(0)| (dimensionless)")
     ax.set_xlim(f[0], f[-1])
-    ax.legend(fontsize=7, loc="lower left")
-    ax2.legend(fontsize=7, loc="center left")
+    # one legend for both axes, below the plot: the curves fill the whole frequency range
+    h1, l1 = ax.get_legend_handles_labels()
+    h2, l2 = ax2.get_legend_handles_labels()
+    ax.legend(h1 + h2, l1 + l2, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     ax.set_title(f"{literal(name)}: detection transfer function (letter Fig. 2a)")
     rep.add_figure(
         fig,
@@ -85,7 +96,8 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             rd.signal_v[i, sel] * 1e3,
             color=col,
             lw=0.8,
-            label=f"tau = {tf.tau_s[i, 0] * 1e6:.1f} us",
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
+            label=f"τ = {tf.tau_s[i, 0] * 1e6:.1f} {US}",
         )
         rc = crds.residuals_v[i, 0, sel] * 1e3
         rt = tf.residuals_v[i, 0, sel] * 1e3
@@ -94,6 +106,7 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             rc,
             color=col,
             lw=0.5,
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
             label=f"CRDS residual (RMS {np.sqrt(np.mean(rc**2)):.3f} mV)",
         )
         axes[1 if i == i_long else 2].plot(
@@ -101,6 +114,7 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             rt,
             color="k",
             lw=0.5,
+            rasterized=True,  # thousands of samples: pixels in the SVG/PDF, text stays vector
             label=f"TF-CRDS residual (RMS {np.sqrt(np.mean(rt**2)):.3f} mV)",
         )
         numbers[f"{name}_residual_rms_mv_tau{tf.tau_s[i, 0] * 1e6:.0f}us"] = {
@@ -108,14 +122,14 @@ def _figure_ringdowns(plt, rep, numbers, name, rd, crds, tf, extremes, tc) -> No
             "tf-crds": float(np.sqrt(np.mean(rt**2))),
         }
     axes[0].set_ylabel("signal (mV)")
-    axes[0].legend(fontsize=7)
+    legend_outside(axes[0])
     for a in axes[1:]:
         a.set_ylabel("residual (mV)")
-        a.legend(fontsize=7, loc="upper right")
+        legend_outside(a)
     axes[0].set_xlim(tc * 1e6, min(t[-1], 8 * tf.tau_s[i_long, 0]) * 1e6)
-    axes[-1].set_xlabel("time after extinction (us)")
+    axes[-1].set_xlabel(f"time after extinction t ({US})")
     axes[0].set_title(
-        f"{literal(name)}: ring-downs truncated at t_cut = {tc * 1e6:g} us (letter Fig. 2b)"
+        f"{literal(name)}: ring-downs truncated at t_cut = {tc * 1e6:g} {US} (letter Fig. 2b)"
     )
     rep.add_figure(
         fig,
@@ -138,8 +152,8 @@ def _figure_spectra(plt, rep, name, study, bundle, crds, tf, gd, tc):
     fig, axes = plt.subplots(
         4, 1, figsize=(7.5, 8), sharex=True, gridspec_kw={"height_ratios": [2, 1, 1, 1]}
     )
-    axes[0].plot(det, sp_c.y * 1e4, "s", ms=3, color="tab:blue", label="CRDS 1/(c tau)")
-    axes[0].plot(det, sp_t.y * 1e4, ".", ms=4, color="k", label="TF-CRDS 1/(c tau)")
+    axes[0].plot(det, sp_c.y * 1e4, "s", ms=3, color="tab:blue", label="CRDS 1/(c τ)")
+    axes[0].plot(det, sp_t.y * 1e4, ".", ms=4, color="k", label="TF-CRDS 1/(c τ)")
     model_c = sp_c.y - fc.residuals[0]
     model_t = sp_t.y - ft.residuals[0]
     axes[0].plot(
@@ -158,17 +172,19 @@ def _figure_spectra(plt, rep, name, study, bundle, crds, tf, gd, tc):
         lw=0.8,
         label=f"{study.profile} fit (TF-CRDS)",
     )
-    axes[0].set_ylabel("loss 1/(c tau) (1e-6 cm^-1)")  # 1/m x 1e-2 -> 1/cm, x 1e6
-    axes[0].legend(fontsize=7)
+    axes[0].set_ylabel("loss 1/(c τ) (10⁻⁶ cm⁻¹)")  # 1/m x 1e-2 -> 1/cm, x 1e6
+    legend_outside(axes[0])
     axes[1].plot(det, fc.residuals[0] / sp_c.u, "s", ms=3, color="tab:blue")
-    axes[1].set_ylabel("CRDS resid./u")
+    axes[1].set_ylabel("CRDS residual\n(units of u)")
     axes[2].plot(det, ft.residuals[0] / sp_t.u, ".", ms=4, color="k")
-    axes[2].set_ylabel("TF-CRDS resid./u")
+    axes[2].set_ylabel("TF-CRDS residual\n(units of u)")
+    for a in axes[1:3]:
+        a.axhline(0, color="0.5", lw=0.6)
     rel = 100 * (tf.tau_s[:, 0] - crds.tau_s[:, 0]) / crds.tau_s[:, 0]
     axes[3].plot((tf.nu_hz - bundle.sample.nu0_hz) / 1e9, rel, ".", color="tab:purple")
-    axes[3].set_ylabel("(tau_TF - tau)/tau (%)")
-    axes[3].set_xlabel("detuning (GHz)")
-    axes[0].set_title(f"{literal(name)}: spectra at t_cut = {tc * 1e6:g} us (letter Fig. 3)")
+    axes[3].set_ylabel("(τ_TF − τ)/τ (%)")
+    axes[3].set_xlabel("detuning ν − ν₀ (GHz)")
+    axes[0].set_title(f"{literal(name)}: spectra at t_cut = {tc * 1e6:g} {US} (letter Fig. 3)")
     rep.add_figure(
         fig,
         f"{name}: CRDS and TF-CRDS spectra with {study.profile} fits, normalised residuals, and "
@@ -224,6 +240,12 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
     a_true = truth["line"]["line_area_hz_per_m"] if truth is not None else None
     fig, ax = plt.subplots(figsize=(7.5, 4.5))
     rows = []
+    names = list(bundle.configs)
+    # the configurations share every t_cut: set them side by side so no marker hides another
+    t_us = np.array(study.t_cuts_s) * 1e6
+    step = np.min(np.diff(np.unique(t_us))) if np.unique(t_us).size > 1 else 1.0
+    shift = dict(zip(names, dodge(len(names), 0.5 * step / max(len(names), 1))))
+    colours = dict(zip(names, plt.cm.tab10(np.arange(len(names)) % 10)))
     for name, raw in bundle.configs.items():
         for window, mk in (("letter", "s"), ("extinction", "o")):
             cfg, noise, beat = account_for_noise_colour(raw, window)
@@ -258,9 +280,11 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
                     }
                 )
             ax.plot(
-                np.array(study.t_cuts_s) * 1e6,
+                t_us + shift[name],
                 100 * np.array(vals),
                 mk + ("--" if window == "letter" else "-"),
+                color=colours[name],
+                mfc="none" if window == "letter" else colours[name],
                 label=f"{literal(name)} {window}",
             )
         worst = max(
@@ -274,16 +298,18 @@ def window_history(study, bundle, truth, rep, out=None, progress=False, pool=Non
             f"max |bias| {100 * worst:.3f} %",
         )
     ax.axhline(0, color="0.5", lw=0.8)
-    ax.set_xlabel("t_cut (us)")
-    ax.set_ylabel("A/A_true - 1 (%)" if a_true is not None else "A/A_ref - 1 (%)")
-    ax.legend(fontsize=7, ncol=2)
-    ax.set_title("TF-CRDS line area: letter window (squares) vs extinction window (circles)")
+    ax.set_xticks(np.unique(t_us))  # a tick at each t_cut, the centre of its group
+    ax.set_xlabel(f"t_cut ({US}); configurations offset side by side")
+    ax.set_ylabel("A/A_true − 1 (%)" if a_true is not None else "A/A_ref − 1 (%)")
+    legend_outside(ax)
+    ax.set_title("TF-CRDS line area: letter window (open squares) vs extinction window (circles)")
     rep.add_figure(
         fig,
         "Each pipeline refines f_c with its own window, then fits every t_cut. The letter's "
         "window models the history before t_cut as flat; with a chain whose memory lasts "
         "microseconds that misrepresents the signal the chain has seen, and the refined f_c "
-        "absorbs only part of it. The extinction window models the history that really was there.",
+        "absorbs only part of it. The extinction window models the history that really was there. "
+        "The configurations are drawn side by side around each t_cut.",
     )
     rep.add_table(["config", "window", "t_cut (us)", "A/A_true - 1 (%)", "chi2_red"], rows)
     for name in bundle.configs:

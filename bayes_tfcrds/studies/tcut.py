@@ -4,7 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.output.plotting import literal, pyplot
+from bayes_tfcrds.output.plotting import (
+    MICROSECOND as US,
+)
+from bayes_tfcrds.output.plotting import (
+    dodge,
+    legend_outside,
+    literal,
+    pyplot,
+)
 from bayes_tfcrds.studies.common import parallel_map
 
 LETTER_BIAS = {
@@ -65,7 +73,12 @@ def _tcut_figure(plt, rep, study, rows, names, band) -> tuple[dict, list]:
     fig, (ax_top, ax_all) = plt.subplots(
         2, 1, figsize=(7.5, 7.5), sharex=True, gridspec_kw={"height_ratios": [1, 1.3]}
     )
-    colors = dict(zip(names, plt.cm.tab10(np.arange(len(names)))))
+    colors = dict(zip(names, plt.cm.tab10(np.arange(len(names)) % 10)))
+    # configurations (and, below, the two methods) share every t_cut: side by side, not on top
+    t_all = np.unique([r["t_cut_s"] for r in rows]) * 1e6
+    step = np.min(np.diff(t_all)) if t_all.size > 1 else 1.0
+    shift = dict(zip(names, dodge(len(names), 0.5 * step / max(len(names), 1))))
+    method_shift = {"crds": -0.15 * step / max(len(names), 1), "tf-crds": 0.0}
     for ax in (ax_top, ax_all):
         ax.axhspan(1 + band[0], 1 + band[1], color="0.85", label="CMDS A_ref spread")
         ax.axhline(1.0, color="0.4", lw=0.8)
@@ -78,11 +91,17 @@ def _tcut_figure(plt, rep, study, rows, names, band) -> tuple[dict, list]:
         for m, mk in (("crds", "+"), ("tf-crds", "o")):
             if m not in cfg_rows:
                 continue
-            t = np.array([r["t_cut_s"] for r in cfg_rows[m]]) * 1e6
+            t = np.array([r["t_cut_s"] for r in cfg_rows[m]]) * 1e6 + shift[n]
             y = np.array([r["ratio"] for r in cfg_rows[m]])
             u = np.array([r["ratio_u"] for r in cfg_rows[m]])
             ax_all.errorbar(
-                t, y, u, fmt=mk, color=colors[n], ms=6, label=f"{literal(n)} {m.upper()}"
+                t + method_shift[m],
+                y,
+                u,
+                fmt=mk,
+                color=colors[n],
+                ms=6,
+                label=f"{literal(n)} {m.upper()}",
             )
             if m == "tf-crds":
                 ax_top.errorbar(t, y, u, fmt=mk, color=colors[n], ms=5, label=literal(n))
@@ -101,16 +120,18 @@ def _tcut_figure(plt, rep, study, rows, names, band) -> tuple[dict, list]:
                 f"{lf:.0f}",
             ]
         )
-    ax_top.set_ylabel("A/A_ref (TF-CRDS)")
-    ax_all.set_ylabel("A/A_ref")
-    ax_all.set_xlabel("t_cut (us)")
-    ax_all.legend(fontsize=7, ncol=2)
-    ax_top.legend(fontsize=7, ncol=4)
+    ax_top.set_ylabel("A/A_ref, TF-CRDS (dimensionless)")
+    ax_all.set_ylabel("A/A_ref (dimensionless)")
+    ax_all.set_xlabel(f"t_cut ({US}); configurations offset side by side")
+    ax_all.set_xticks(t_all)  # a tick at each t_cut, the centre of its group
+    legend_outside(ax_all)
+    legend_outside(ax_top)
     ax_top.set_title("Line area relative to CMDS against t_cut (letter Fig. 5)")
     rep.add_figure(
         fig,
         "A/A_ref against t_cut for every configuration: CRDS (+) and TF-CRDS (o); grey: the "
-        "spread of the configurations' CMDS references. Top: TF-CRDS magnified.",
+        "spread of the configurations' CMDS references. Top: TF-CRDS magnified. Error bars: "
+        "standard uncertainties; the configurations are drawn side by side around each t_cut.",
     )
     return numbers["configs"], table
 

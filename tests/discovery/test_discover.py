@@ -162,4 +162,5 @@ def test_two_hidden_effects_are_both_found_through_the_cli(tmp_path):
         and abs(et["gaps_after"]["spectrum_chi2"]["z"]) < 3
     )
     html = (tmp_path / "out" / "discovery.html").read_text()
-    assert "etalon" in html and "baseline_drift" in html and "data:image/png;base64" in html
+    assert "etalon" in html and "baseline_drift" in html
+    assert "data:image/svg+xml;base64" in html or "data:image/png;base64" in html  # figures
