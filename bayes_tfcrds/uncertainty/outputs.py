@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import pyplot
 from bayes_tfcrds.uncertainty.line_budget import BudgetResult
@@ -41,6 +43,7 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         md += "\n\n" + refinement_markdown(refinement)
     if result.summary.get("noise"):
         md += "\n\n" + noise_markdown(result.summary["noise"])
+    md += "\n\n" + priors_markdown(result.summary.get("priors") or {})
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
     atomic_write_text(out / "budget.csv", mark + result.budget_a.to_csv())
@@ -58,7 +61,10 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         path = out / f"posterior_{key}.nc"
         run.save_netcdf(path)
         written.append(path)
-        fig = corner.corner(run.flat(), labels=list(run.names), show_titles=True, title_fmt=".3g")
+        values = run.parameters()  # natural units, as in the netCDF file
+        flat = np.column_stack([v.ravel() for v in values.values()])
+        labels = [f"{n} ({run.units[n]})" if n in run.units else n for n in values]
+        fig = corner.corner(flat, labels=labels, show_titles=True, title_fmt=".3g")
         with atomic_path(out / f"corner_{key}.png", suffix=".png") as tmp:
             fig.savefig(tmp, dpi=70)
         plt.close(fig)
@@ -116,4 +122,28 @@ def refinement_markdown(refinement: dict) -> str:
         f"Joint tension chi2 = {refinement['tension_chi2']:.2f} ({refinement['tension_dof']} dof, "
         f"p = {refinement['tension_p']:.3g})" + (finding if refinement["in_tension"] else "")
     )
+    return "\n".join(rows)
+
+
+PRIOR_COLUMNS = ("posterior", "parameter", "prior", "lower", "upper", "unit", "condition")
+
+
+def prior_rows(priors: dict) -> list:
+    """Rows (PRIOR_COLUMNS) of the ``priors`` of budget.json; an unbounded side reads -inf/inf."""
+    bound = lambda v, side: side if v is None else format(v, ".6g")  # noqa: E731
+    return [
+        [run["posterior"], p["parameter"], p["family"], bound(p["lower"], "-inf")]
+        + [bound(p["upper"], "inf"), p["unit"], p["condition"] or p["note"]]
+        for run in priors.values()
+        for p in run["parameters"]
+    ]
+
+
+def priors_markdown(priors: dict) -> str:
+    """The Priors section of budget.md: every sampled parameter's prior family, bounds and unit."""
+    if not priors:
+        return "## Priors\n\nNone: Laplace posteriors (Gaussians about the least-squares fits)."
+    rows = ["## Priors", "", "| " + " | ".join(PRIOR_COLUMNS) + " |", "|---" * 7 + "|"]
+    rows += ["| " + " | ".join(c.replace("|", "\\|") for c in r) + " |" for r in prior_rows(priors)]
+    rows += ["", "log-uniform priors are sampled as the logarithm of the parameter."]
     return "\n".join(rows)
