@@ -9,7 +9,8 @@ Diagnostics (per parameter and per derived quantity, :func:`chain_diagnostics`)
     All are arviz's, computed on the layout the netCDF files store (:func:`draw_layout`), so
     ``az.rhat`` and ``az.ess`` on a saved posterior give the numbers the gates judged:
     one chain per ensemble; its draws are the first half of the kept steps listed walker by
-    walker (all steps of walker 0, then walker 1, ...), then the second half the same way.
+    walker (all those steps of walker 0, then of walker 1, ...), then the middle step of an odd
+    length, then the second half the same way.
 
     * ``rhat``: rank-normalised split R-hat (Vehtari et al. 2021, ``az.rhat(method="rank")``).
       R-hat only sees which draws fall in which half of each chain, and the halves are the first
@@ -18,19 +19,20 @@ Diagnostics (per parameter and per derived quantity, :func:`chain_diagnostics`)
     * ``ess_bulk``, ``ess_tail``: ``az.ess`` (methods "bulk" and "tail"). Listed walker by
       walker, a lag of k draws within a half is a lag of k steps of one walker, so the
       autocovariance arviz estimates is the walkers' averaged about the ensemble's mean. The
-      step-major order is *not* used: it puts the coupled walkers of one step next to each
-      other, their near-zero lag-1 correlation stops Geyer's sum at once, and ESS comes out
-      about tau_int times too large (measured: 126 000 for an AR(1) ensemble with 6 700
-      effective draws; 6 600 with this layout).
+      step-major order is *not* used: there the neighbours of a draw are the other walkers of
+      its step, nearly uncorrelated with it, while its own walker's next step lies n_walkers
+      draws away; Geyer's sum stops at the first lags and ESS comes out about tau_int times too
+      large (measured: 126 000 for an AR(1) ensemble with 6 700 effective draws; 6 600 with this
+      layout).
     * ``tau_int``: integrated autocorrelation time in steps, largest over the ensembles,
       of the rank-normalised values, with emcee's Sokal window (``c = 5``).
     * ``n_tau``: kept chain length in units of ``tau_int``.
 
-    tau_e is emcee's estimator with one change: the autocovariance of every walker is
-    taken about the *ensemble* mean and averaged over walkers before normalising. emcee's
-    ``integrated_time`` centres each walker on its own mean, which biases tau low by
-    ~2*window/n (for an AR(1) chain with tau = 39: -14 % at 2000 steps, -43 % at 500)
-    and returns NaN when a walker never visits a 5 % tail.
+    The per-ensemble tau_int is emcee's estimator with one change: the autocovariance of
+    every walker is taken about the *ensemble* mean and averaged over walkers before
+    normalising. emcee's ``integrated_time`` centres each walker on its own mean, which biases
+    tau low by ~2*window/n (for an AR(1) chain with tau = 39: -14 % at 2000 steps, -43 % at
+    500) and returns NaN when a walker never visits a 5 % tail.
 
 Gates (:class:`Gates`): every reported quantity needs R-hat < ``rhat_max``, bulk and tail
 ESS > ``ess_min`` and kept length > ``min_tau_multiple`` * tau_int. If a gate fails, all

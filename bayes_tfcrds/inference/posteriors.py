@@ -54,7 +54,7 @@ class Prior:
             )
         if not self.lower < self.upper:
             raise ValueError(f"prior of {self.parameter}: need lower < upper")
-        if self.family == "log-uniform" and not 0 < self.lower and math.isfinite(self.upper):
+        if self.family == "log-uniform" and not (0 < self.lower and math.isfinite(self.upper)):
             raise ValueError(
                 f"prior of {self.parameter}: log-uniform needs 0 < lower, finite upper"
             )

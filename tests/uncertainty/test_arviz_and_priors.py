@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from bayes_tfcrds.fit.h_calibration import BEAT_FREE
-from bayes_tfcrds.inference.posteriors import H_PRIORS, LINE_PRIORS
+from bayes_tfcrds.inference.posteriors import H_PRIORS, LINE_PRIORS, Prior
 from bayes_tfcrds.output.report import Report
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
 from bayes_tfcrds.studies.budgets import _priors_table
@@ -155,3 +155,14 @@ def test_flipping_a_prior_family_changes_the_sampler_and_the_outputs(bundle, mon
     assert "| f_c_hz | uniform |" in priors_markdown(res.summary["priors"])
     post = res.runs["h"].to_inference_data().posterior
     assert post["f_c_hz"].attrs["prior_family"] == "uniform"
+
+
+def test_a_prior_that_cannot_be_sampled_is_refused():
+    with pytest.raises(ValueError, match="not in"):
+        Prior("f_hz", "normal", 1.0, 2.0, "Hz")  # no such family here
+    with pytest.raises(ValueError, match="log-uniform needs"):
+        Prior("f_hz", "log-uniform", 0.0, 1e6, "Hz")  # log 0
+    with pytest.raises(ValueError, match="log-uniform needs"):
+        Prior("f_hz", "log-uniform", 1.0, np.inf, "Hz")  # improper in log
+    with pytest.raises(ValueError, match="lower < upper"):
+        Prior("a", "uniform", 1.0, 1.0, "1")
