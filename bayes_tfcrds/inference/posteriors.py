@@ -1,15 +1,19 @@
 """Log-posteriors for the samplers: H(f) from the beat note, and line parameters from spectra.
 
 Both are vectorised over emcee's walkers (``log_prob(thetas)`` with thetas of shape
-(n_walkers, ndim)). Scale parameters (frequencies, widths, quality factor) are sampled as
-logarithms with uniform priors on wide physical ranges (scale-invariant priors); the priors
-also encode physics: 0 <= Gamma2 <= (2/3) Gamma0 keeps the qSDHCP absorption non-negative,
-nu_VC >= 0, A > 0.
+(n_walkers, ndim)). Each declares its priors as :class:`Prior` objects (``priors``), the one
+source of truth for its support, its sampled coordinates and what every output says about it:
+scale parameters of H (frequencies, the quality factor) are log-uniform (scale-invariant) on
+wide physical ranges and sampled as logarithms; everything else is uniform, sampled as it is.
+The priors also encode physics: 0 <= Gamma2 <= (2/3) Gamma0 keeps the qSDHCP absorption
+non-negative, nu_VC >= 0, A > 0.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
@@ -20,20 +24,146 @@ from bayes_tfcrds.physics.transfer_function import (
     transfer_function_array,
 )
 
-LOG_PARAMS = {"f_c_hz", "f_r_hz", "gamma_r"}
-# the physical domain of every H parameter; a causal fractional order n_r <= 2; the scale K
-H_PRIOR = {**SUPPORT, "n_r": (0.5, 2.0), "scale": (0.0, 10.0)}
+PRIOR_FAMILIES = ("uniform", "log-uniform")
+
+
+@dataclass(frozen=True)
+class Prior:
+    """The prior of one sampled parameter, in the parameter's natural unit.
+
+    ``family`` "uniform" is flat in the parameter between ``lower`` and ``upper`` (improper when
+    a bound is infinite); "log-uniform" is flat in its logarithm (scale-invariant; needs
+    0 < lower < upper < inf). The sampler moves in the coordinate in which the prior is flat (the
+    logarithm for log-uniform), so inside the support the log-posterior there is the
+    log-likelihood. ``cap`` = (other parameter, factor) adds the joint bound
+    parameter < factor * other when the other parameter is sampled too.
+    """
+
+    parameter: str
+    family: str
+    lower: float
+    upper: float
+    unit: str
+    cap: tuple = ()
+    note: str = ""
+
+    def __post_init__(self):
+        if self.family not in PRIOR_FAMILIES:
+            raise ValueError(
+                f"prior of {self.parameter}: family {self.family!r} not in {PRIOR_FAMILIES}"
+            )
+        if not self.lower < self.upper:
+            raise ValueError(f"prior of {self.parameter}: need lower < upper")
+        if self.family == "log-uniform" and not (0 < self.lower and math.isfinite(self.upper)):
+            raise ValueError(
+                f"prior of {self.parameter}: log-uniform needs 0 < lower, finite upper"
+            )
+
+    @property
+    def is_log(self) -> bool:
+        return self.family == "log-uniform"
+
+    @property
+    def sample_name(self) -> str:
+        """The sampler's coordinate: ``log_<parameter>`` for a log-uniform prior."""
+        return "log_" + self.parameter if self.is_log else self.parameter
+
+    @property
+    def sample_width(self) -> float:
+        """Width of the support in the sampled coordinate (inf when unbounded)."""
+        if self.is_log:
+            return math.log(self.upper) - math.log(self.lower)
+        return self.upper - self.lower
+
+    def to_sample(self, value):
+        return np.log(value) if self.is_log else value
+
+    def from_sample(self, x):
+        if not self.is_log:
+            return x
+        with np.errstate(over="ignore"):  # far proposals overflow to inf, which the prior refuses
+            return np.exp(x)
+
+    @property
+    def condition(self) -> str:
+        """The joint bound in words ('' without a cap)."""
+        if not self.cap:
+            return ""
+        factor = Fraction(self.cap[1]).limit_denominator(1000)
+        return f"{self.parameter} < ({factor}) {self.cap[0]}"
+
+    def to_dict(self) -> dict:
+        """JSON form; an unbounded side is None."""
+        return {
+            "parameter": self.parameter,
+            "family": self.family,
+            "lower": self.lower if math.isfinite(self.lower) else None,
+            "upper": self.upper if math.isfinite(self.upper) else None,
+            "unit": self.unit,
+            "condition": self.condition,
+            "sampled_as": self.sample_name,
+            "note": self.note,
+        }
+
+
+def outside_priors(priors, values: dict) -> np.ndarray:
+    """True where a sample (natural-unit ``values[parameter]`` arrays) lies outside ``priors``.
+
+    Outside: not finite, at or beyond a bound, or at or beyond a cap whose other parameter is in
+    ``values``.
+    """
+    bad = np.zeros(np.shape(values[priors[0].parameter]), bool)
+    for p in priors:
+        v = values[p.parameter]
+        bad |= ~np.isfinite(v) | (v <= p.lower) | (v >= p.upper)
+        if p.cap and p.cap[0] in values:
+            bad |= v >= p.cap[1] * values[p.cap[0]]
+    return bad
+
+
+def sample_names(priors) -> tuple:
+    return tuple(p.sample_name for p in priors)
+
+
+def to_natural(priors, x) -> dict:
+    """Natural-unit parameter arrays from samples x (..., ndim) in the priors' coordinates."""
+    x = np.asarray(x, float)
+    return {p.parameter: p.from_sample(x[..., i]) for i, p in enumerate(priors)}
+
+
+# the priors of H: log-uniform frequencies and quality factor over the physical domain of Eq. 2
+# (SUPPORT), a causal fractional order n_r <= 2, and the beat note's scale K
+H_PRIORS = {
+    "f_c_hz": Prior("f_c_hz", "log-uniform", *SUPPORT["f_c_hz"], "Hz"),
+    "a_r": Prior("a_r", "uniform", *SUPPORT["a_r"], "1"),
+    "f_r_hz": Prior("f_r_hz", "log-uniform", *SUPPORT["f_r_hz"], "Hz"),
+    "gamma_r": Prior("gamma_r", "log-uniform", *SUPPORT["gamma_r"], "1"),
+    "n_r": Prior("n_r", "uniform", 0.5, 2.0, "1"),
+    "scale": Prior("scale", "uniform", 0.0, 10.0, "1", note="beat-note amplitude scale K"),
+}
+H_PRIOR = {n: (p.lower, p.upper) for n, p in H_PRIORS.items()}  # the bounds alone
+
+
+def h_prior(name: str, a_r_sign: int = 0) -> Prior:
+    """The prior of H parameter ``name``; A_r restricted to the branch of sign ``a_r_sign``."""
+    p = H_PRIORS[name]
+    if name != "a_r" or not a_r_sign:
+        return p
+    lo, hi = (max(p.lower, 0.0), p.upper) if a_r_sign > 0 else (p.lower, min(p.upper, 0.0))
+    return Prior(
+        p.parameter, p.family, lo, hi, p.unit, note="the branch of A_r the ring-downs chose"
+    )
 
 
 @dataclass(frozen=True)
 class BeatNotePosterior:
     """log p(theta | beat note) for the H parameters ``free`` plus the scale K.
 
-    Sample space: log of f_c, f_r, gamma_r; a_r, n_r and K as they are (see ``sample_names``).
-    Likelihood: Gaussian in the measured |H(f_B)| with its stated uncertainty. |H| nearly repeats
-    under A_r -> -A_r/(1 + 2 A_r), which maps A_r > 0 onto -1 < A_r < 0: ``a_r_sign`` restricts
-    the support to the branch the ring-downs chose, so a sampler cannot wander into the mirror
-    mode that the ring-down data exclude.
+    Priors: :data:`H_PRIORS` (``priors``), sampled in their flat coordinates (``sample_names``:
+    log of f_c, f_r, gamma_r). Likelihood: Gaussian in the measured |H(f_B)| with its stated
+    uncertainty. |H| nearly repeats under A_r -> -A_r/(1 + 2 A_r), which maps A_r > 0 onto
+    -1 < A_r < 0: ``a_r_sign`` restricts the prior to the branch the ring-downs chose, so a sampler
+    cannot wander into the mirror mode that the ring-down data exclude.
     """
 
     f_hz: np.ndarray
@@ -44,35 +174,25 @@ class BeatNotePosterior:
     a_r_sign: int = 0  # +1 or -1: the branch of A_r the ring-downs chose (0: both)
 
     @property
+    def priors(self) -> tuple:
+        return tuple(h_prior(n, self.a_r_sign) for n in (*self.free, "scale"))
+
+    @property
     def sample_names(self) -> tuple:
-        return tuple(("log_" + n if n in LOG_PARAMS else n) for n in self.free) + ("scale",)
+        return sample_names(self.priors)
 
     def to_sample(self, params: TFParams, scale: float) -> np.ndarray:
-        v = [
-            np.log(getattr(params, n)) if n in LOG_PARAMS else getattr(params, n) for n in self.free
-        ]
-        return np.array(v + [scale], float)
+        v = [getattr(params, n) for n in self.free] + [scale]
+        return np.array([p.to_sample(x) for p, x in zip(self.priors, v)], float)
 
     def to_params(self, x) -> dict:
         """Natural-unit parameter arrays from samples x (..., ndim)."""
-        x = np.asarray(x, float)
-        with np.errstate(over="ignore"):  # far proposals overflow to inf, which the prior refuses
-            out = {
-                n: (np.exp(x[..., i]) if n in LOG_PARAMS else x[..., i])
-                for i, n in enumerate(self.free)
-            }
-        out["scale"] = x[..., -1]
-        return out
+        return to_natural(self.priors, x)
 
     def __call__(self, x):
         x = np.atleast_2d(x)
         p = self.to_params(x)
-        lp = np.zeros(x.shape[0])
-        for name, v in p.items():
-            lo, hi = H_PRIOR[name]
-            lp[(v <= lo) | (v >= hi) | ~np.isfinite(v)] = -np.inf
-        if self.a_r_sign and "a_r" in p:
-            lp[p["a_r"] * self.a_r_sign <= 0] = -np.inf
+        lp = np.where(outside_priors(self.priors, p), -np.inf, 0.0)
         ok = np.isfinite(lp)
         if not ok.any():
             return lp
@@ -98,32 +218,56 @@ class BeatNotePosterior:
         return lp
 
 
+# the priors of the line parameters: flat (improper) within their physical bounds
+LINE_PRIORS = {
+    "line_area": Prior("line_area", "uniform", 0.0, math.inf, "Hz/m"),
+    "position_offset_hz": Prior("position_offset_hz", "uniform", -math.inf, math.inf, "Hz"),
+    "gamma0_hz": Prior("gamma0_hz", "uniform", 0.0, math.inf, "Hz"),
+    # no negative width in any speed class (qSDHCP absorption >= 0)
+    "gamma2_hz": Prior("gamma2_hz", "uniform", 0.0, math.inf, "Hz", cap=("gamma0_hz", 2.0 / 3.0)),
+    "nu_vc_hz": Prior("nu_vc_hz", "uniform", 0.0, math.inf, "Hz"),
+    "delta2_hz": Prior("delta2_hz", "uniform", -math.inf, math.inf, "Hz"),
+}
+# per spectrum: the baseline in the spectrum's unit and its slope per Hz of detuning
+BASELINE_UNITS = {"absorption": ("1/m", "1/(m Hz)"), "dispersion": ("Hz", "1")}
+
+
+def line_prior(name: str, kinds) -> Prior:
+    """The prior of line-model parameter ``name``; baselines take the unit of their spectrum."""
+    if name in LINE_PRIORS:
+        return LINE_PRIORS[name]
+    for stem, k in (("baseline", 0), ("slope", 1)):
+        if name.startswith(stem) and name[len(stem) :].isdigit():
+            unit = BASELINE_UNITS[kinds[int(name[len(stem) :])]][k]
+            return Prior(name, "uniform", -math.inf, math.inf, unit)
+    raise KeyError(f"no prior for line parameter {name!r}")
+
+
 @dataclass(frozen=True)
 class LinePosterior:
     """log p(line parameters | spectra) for a :class:`bayes_tfcrds.fit.line.LineModel` layout.
 
     Sample space: the model's parameters in natural SI units (A in Hz/m, position offset and
-    widths in Hz, baselines in the spectrum's unit); flat priors with the physical bounds.
+    widths in Hz, baselines in the spectrum's unit); priors :data:`LINE_PRIORS` (``priors``), flat
+    within the physical bounds.
     """
 
     model: object
     spectra: tuple
     names: tuple
 
+    @property
+    def priors(self) -> tuple:
+        return tuple(line_prior(n, self.model.kinds) for n in self.names)
+
+    def __post_init__(self):
+        if any(p.is_log for p in self.priors):
+            raise ValueError("the line posterior samples its parameters as they are (uniform)")
+
     def __call__(self, x):
         x = np.atleast_2d(np.asarray(x, float))
-        lp = np.zeros(x.shape[0])
-        idx = {n: i for i, n in enumerate(self.names)}
-        bad = x[:, idx["line_area"]] <= 0
-        g0 = x[:, idx["gamma0_hz"]] if "gamma0_hz" in idx else None
-        if g0 is not None:
-            bad |= g0 <= 0
-        if "gamma2_hz" in idx:
-            g2 = x[:, idx["gamma2_hz"]]
-            bad |= (g2 < 0) | (g2 > (2.0 / 3.0) * (g0 if g0 is not None else np.inf))
-        if "nu_vc_hz" in idx:
-            bad |= x[:, idx["nu_vc_hz"]] < 0
-        lp[bad] = -np.inf
+        bad = outside_priors(self.priors, dict(zip(self.names, x.T)))
+        lp = np.where(bad, -np.inf, 0.0)
         ok = ~bad
         if not ok.any():
             return lp

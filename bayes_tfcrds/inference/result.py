@@ -2,13 +2,25 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from bayes_tfcrds.inference.diagnostics import Gates, _arviz_major, _import_arviz
+from bayes_tfcrds.inference.diagnostics import (
+    Gates,
+    _arviz_major,
+    _import_arviz,
+    draw_layout,
+    to_draws,
+)
+from bayes_tfcrds.inference.posteriors import to_natural
 from bayes_tfcrds.output.files import atomic_path
+
+DRAW_LAYOUT = (
+    "chain = ensemble; draw = the first half of the kept steps listed walker by walker, then the "
+    "middle step of an odd length, then the second half walker by walker (coordinates step and "
+    "walker give each draw's origin); az.rhat and az.ess on this layout are the gated diagnostics"
+)
 
 
 # --------------------------------------------------------------------------- result
@@ -18,14 +30,28 @@ def _frozen(a):
     return a
 
 
+def parameter_values(names, priors, samples) -> dict:
+    """Natural-unit values {parameter: (..., ) array} of ``samples`` (..., ndim).
+
+    With ``priors`` the sampled coordinates are mapped back through them (e.g. exp of a
+    log-uniform parameter's logarithm); without, the coordinates are the parameters ``names``.
+    """
+    if priors:
+        return to_natural(priors, samples)
+    return {n: samples[..., i] for i, n in enumerate(names)}
+
+
 @dataclass(frozen=True, eq=False)
 class SamplingResult:
     """Post-burn-in samples of all ensembles and the diagnostics that judged them.
 
-    ``samples`` is (n_ensembles, n_kept_steps, n_walkers, ndim), ``log_prob`` and
-    ``derived[name]`` are (n_ensembles, n_kept_steps, n_walkers). ``n_steps`` is the total
-    length per ensemble, ``burn`` the discarded leading steps. ``passed`` is True only if
-    every gate held for every quantity in ``diagnostics``.
+    ``samples`` is (n_ensembles, n_kept_steps, n_walkers, ndim) in the sampler's coordinates
+    ``names``, ``log_prob`` and ``derived[name]`` are (n_ensembles, n_kept_steps, n_walkers).
+    ``priors`` (one :class:`~bayes_tfcrds.inference.posteriors.Prior` per coordinate, or empty)
+    map the coordinates to the natural-unit parameters that are diagnosed, gated and saved;
+    ``units`` gives the unit of every reported quantity it knows. ``n_steps`` is the total length
+    per ensemble, ``burn`` the discarded leading steps. ``passed`` is True only if every gate held
+    for every gated quantity in ``diagnostics``.
     """
 
     names: tuple
@@ -42,6 +68,8 @@ class SamplingResult:
     derived: dict = field(default_factory=dict)
     gates: Gates = Gates()
     label: str = ""
+    priors: tuple = ()
+    units: dict = field(default_factory=dict)
 
     @property
     def n_ensembles(self) -> int:
@@ -55,31 +83,66 @@ class SamplingResult:
         """All kept samples as (N, ndim), ensemble-major then step then walker."""
         return self.samples.reshape(-1, self.samples.shape[-1])
 
+    def parameters(self) -> dict:
+        """The parameters in natural units, {name: (ensembles, steps, walkers)}."""
+        return parameter_values(self.names, self.priors, self.samples)
+
+    def variables(self) -> dict:
+        """Every reported quantity: the parameters (natural units), then the derived ones."""
+        return {**self.parameters(), **self.derived}
+
     def to_inference_data(self):
-        """ArviZ data with posterior dims (chain, draw), chain = ensemble * n_walkers + walker.
+        """ArviZ data whose ``az.rhat`` and ``az.ess`` are this run's gated diagnostics.
 
-        That is emcee's convention for arviz (a walker is a "chain"); note that arviz's own
-        R-hat/ESS on these chains are not the gated diagnostics, which are in the attrs.
+        Posterior dims (chain, draw) in :data:`DRAW_LAYOUT` (chain = ensemble), with coordinates
+        ``step`` (since the start, burn-in included) and ``walker`` along draw; parameters in
+        natural units. Each variable's attributes: ``units``, its diagnostics (``rhat``,
+        ``ess_bulk``, ``ess_tail``, ``tau_int``, ``n_tau``, ``tau_int_ensembles``, ``gated``) and,
+        for a parameter, its prior (``prior_family``, ``prior_lower``, ``prior_upper``,
+        ``prior_condition``, ``sampled_as``). The group's attributes: the run and its gates.
         """
+        import xarray as xr
 
-        def chains(a):  # (E, S, W) -> (E * W, S)
-            return np.swapaxes(np.asarray(a), 1, 2).reshape(-1, a.shape[1])
-
-        posterior = {n: chains(self.samples[..., i]) for i, n in enumerate(self.names)}
-        posterior.update({n: chains(v) for n, v in self.derived.items()})
+        e, s, w = self.samples.shape[:3]
+        step, walker = draw_layout(s, w)
+        coords = {
+            "chain": np.arange(e),
+            "draw": np.arange(s * w),
+            "step": ("draw", step + self.burn),
+            "walker": ("draw", walker),
+        }
+        priors = {p.parameter: p for p in self.priors}
+        gated = self.gates.gated
+        data = {}
+        for name, values in self.variables().items():
+            attrs = {"units": self.units[name]} if name in self.units else {}
+            d = self.diagnostics[name]
+            attrs.update({k: np.asarray(d[k], float) for k in _DIAGNOSTIC_KEYS})
+            attrs["gated"] = int(gated is None or name in gated)
+            if name in priors:
+                attrs.update(_prior_attrs(priors[name]))
+            data[name] = (("chain", "draw"), to_draws(values), attrs)
         attrs = dict(
-            n_ensembles=self.n_ensembles,
-            n_walkers=self.n_walkers,
+            n_ensembles=e,
+            n_walkers=w,
             n_steps=self.n_steps,
             burn=self.burn,
             passed=int(self.passed),
             status=self.status,
             label=self.label,
-            diagnostics=json.dumps(self.diagnostics),
-            gates=json.dumps(self.gates.__dict__),
+            rhat_max=self.rhat_max,
+            ess_min=self.ess_min,
+            gate_rhat_max=self.gates.rhat_max,
+            gate_ess_min=self.gates.ess_min,
+            gate_min_tau_multiple=self.gates.min_tau_multiple,
+            gated=", ".join(gated) if gated is not None else "all",
             acceptance=np.asarray(self.acceptance, dtype=float),
+            draw_layout=DRAW_LAYOUT,
+            inference_library="emcee",
         )
-        return _make_inference_data(posterior, {"lp": chains(self.log_prob)}, attrs)
+        posterior = xr.Dataset(data, coords=coords, attrs=attrs)
+        stats = xr.Dataset({"lp": (("chain", "draw"), to_draws(self.log_prob))}, coords=coords)
+        return _make_inference_data(posterior, stats)
 
     def save_netcdf(self, path) -> None:
         """Write :meth:`to_inference_data` to ``path`` atomically (temp file + os.replace)."""
@@ -87,11 +150,24 @@ class SamplingResult:
             self.to_inference_data().to_netcdf(tmp)
 
 
-def _make_inference_data(posterior: dict, sample_stats: dict, attrs: dict):
-    """The one arviz constructor call: 0.2x ``from_dict(posterior=...)`` vs 1.x group dict."""
+_DIAGNOSTIC_KEYS = ("rhat", "ess_bulk", "ess_tail", "tau_int", "n_tau", "tau_int_ensembles")
+
+
+def _prior_attrs(prior) -> dict:
+    return {
+        "prior_family": prior.family,
+        "prior_lower": float(prior.lower),
+        "prior_upper": float(prior.upper),
+        "prior_condition": prior.condition,
+        "sampled_as": prior.sample_name,
+    }
+
+
+def _make_inference_data(posterior, sample_stats):
+    """The one arviz constructor call: 0.2x ``InferenceData`` vs 1.x's ``xarray.DataTree``."""
     az = _import_arviz()
     if _arviz_major() >= 1:
-        return az.from_dict(
-            {"posterior": posterior, "sample_stats": sample_stats}, attrs={"posterior": attrs}
-        )
-    return az.from_dict(posterior=posterior, sample_stats=sample_stats, posterior_attrs=attrs)
+        import xarray as xr
+
+        return xr.DataTree.from_dict({"posterior": posterior, "sample_stats": sample_stats})
+    return az.InferenceData(posterior=posterior, sample_stats=sample_stats)

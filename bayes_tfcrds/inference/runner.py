@@ -13,7 +13,8 @@ import emcee
 import numpy as np
 
 from bayes_tfcrds.inference.diagnostics import Gates, _gate_failures, burn_in, chain_diagnostics
-from bayes_tfcrds.inference.result import SamplingResult, _frozen
+from bayes_tfcrds.inference.posteriors import sample_names
+from bayes_tfcrds.inference.result import SamplingResult, _frozen, parameter_values
 from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _same_rng_state, _StepRecorder
 from bayes_tfcrds.output.progress import progress_bar
 
@@ -140,11 +141,16 @@ class _StopRequest:
 
 
 # --------------------------------------------------------------------------- runner
-def _evaluate(names, chains, log_prob, accepted, derived_fn, gates, label) -> SamplingResult:
+def _evaluate(
+    names, chains, log_prob, accepted, derived_fn, gates, label, priors=(), units=None
+) -> SamplingResult:
     n = chains.shape[1]
     burn = burn_in(chains)
     kept, lp_kept, acc_kept = chains[:, burn:], log_prob[:, burn:], accepted[:, burn:]
-    diagnostics = {nm: chain_diagnostics(kept[..., i]) for i, nm in enumerate(names)}
+    # diagnosed in natural units, as the files hold them (the tail R-hat folds about the median,
+    # which is not invariant under the log of a log-uniform parameter)
+    values = parameter_values(names, priors, kept)
+    diagnostics = {nm: chain_diagnostics(v) for nm, v in values.items()}
     derived = {}
     if derived_fn is not None:
         shape = kept.shape[:3]
@@ -175,6 +181,8 @@ def _evaluate(names, chains, log_prob, accepted, derived_fn, gates, label) -> Sa
         derived=derived,
         gates=gates,
         label=label,
+        priors=tuple(priors),
+        units={**{p.parameter: p.unit for p in priors}, **(units or {})},
     )
 
 
@@ -197,6 +205,8 @@ def run_ensembles(
     derived_fn: Callable | None = None,
     chunk_steps: int = 100,
     moves=None,
+    priors: Sequence = (),
+    units: dict | None = None,
 ) -> SamplingResult:
     """Sample ``log_prob`` with independent emcee ensembles until the gates pass or ``max_steps``.
 
@@ -214,6 +224,10 @@ def run_ensembles(
     derived_fn: ``samples (n, ndim) -> {name: (n,) array}``; derived quantities get the
         same diagnostics and gates as the parameters.
     chunk_steps: steps between commits; the chains do not depend on it.
+    priors: the :class:`~bayes_tfcrds.inference.posteriors.Prior` of each coordinate (their
+        ``sample_name`` must be ``names``): the natural-unit parameters they map to are
+        diagnosed, gated and saved, and the priors are recorded in the result.
+    units: the unit of each derived quantity (the parameters' come from ``priors``).
 
     Returns a :class:`SamplingResult`; a failed gate is reported there (``passed=False``),
     never raised and never hidden.
@@ -231,6 +245,8 @@ def run_ensembles(
         raise ValueError(f"need 1 <= n_steps ({n_steps}) <= max_steps ({max_steps})")
     if chunk_steps < 1:
         raise ValueError("chunk_steps must be >= 1")
+    if priors and sample_names(priors) != names:
+        raise ValueError(f"priors sample {sample_names(priors)}, not the names {names}")
 
     ensembles = [
         _Ensemble(
@@ -272,7 +288,9 @@ def run_ensembles(
                 e.advance_to(target, bars[i] if bars else None, stop)
             parts = [e.read(target) for e in ensembles]
             chains, lps, acc = (np.stack(p) for p in zip(*parts))
-            result = _evaluate(names, chains, lps, acc, derived_fn, gates, label)
+            result = _evaluate(
+                names, chains, lps, acc, derived_fn, gates, label, tuple(priors), units
+            )
             log.debug(
                 "%s: %d steps per ensemble, R-hat max %.4g, ESS min %.4g: %s",
                 label or "sampler",

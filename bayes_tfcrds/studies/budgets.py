@@ -6,6 +6,7 @@ import numpy as np
 
 from bayes_tfcrds.output.plotting import legend_above, literal, pyplot
 from bayes_tfcrds.studies.common import parallel_map
+from bayes_tfcrds.uncertainty.outputs import PRIOR_COLUMNS, prior_rows
 
 
 def _budget_config(args):
@@ -94,6 +95,17 @@ def _refinement_table(rep, name: str, s: dict) -> None:
         f"joint chi2 {ref['tension_chi2']:.2f} ({ref['tension_dof']} dof, p = "
         f"{ref['tension_p']:.3g}); refined: {', '.join(s['transfer_function']['refined'])}",
     )
+
+
+def _priors_table(rep, results) -> None:
+    """The priors of the budgets' posteriors (from each summary), each distinct row once."""
+    rows = {}
+    for name, s, *_ in results:
+        for row in prior_rows(s.get("priors") or {}):
+            rows.setdefault(tuple(row), []).append(name)
+    if rows:
+        rep.add_heading("Priors")
+        rep.add_table(["configs", *PRIOR_COLUMNS], [[", ".join(c), *r] for r, c in rows.items()])
 
 
 def _consistency(rep, ok: list) -> dict:
@@ -239,4 +251,5 @@ def budgets(study, bundle, truth, rep, out, progress=False, pool=None):
         numbers["weighted_mean"] = _consistency(rep, ok)
         _comparison_figure(plt, rep, ok)
     _ratio_lines(rep, ok)
+    _priors_table(rep, results)
     return numbers

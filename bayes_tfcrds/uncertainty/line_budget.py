@@ -72,6 +72,7 @@ from bayes_tfcrds.uncertainty.posterior_steps import (
     h_posterior,
     line_draws,
     line_mcmc,
+    priors_summary,
 )
 from bayes_tfcrds.uncertainty.propagate import (
     TauKernels,
@@ -1163,6 +1164,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
         summary["transfer_function"]["refined"] = list(refined.free)
         summary["transfer_function"]["refined_asked"] = list(options.refine_free)
     _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
+    summary["priors"] = priors_summary(runs)
     clock.done("budgets")
     samples = {
         "a_total": a_total,

@@ -224,6 +224,7 @@ def write_outputs(
         md += "\n\n" + noise_markdown(result.summary["noise"])
     if result.summary.get("instrument"):
         md += "\n\n" + instrument_markdown(result.summary["instrument"])
+    md += "\n\n" + priors_markdown(result.summary.get("priors") or {})
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
     atomic_write_text(out / "budget.csv", mark + budget_csv(result))
@@ -619,3 +620,27 @@ def component_from_result(entry: dict, name: str, sensitivity: float, note: str 
         dof=math.inf if dof in ("inf", None) else float(dof),
         note=note or "imported from budget.json (combined u and effective dof of that budget)",
     )
+
+
+PRIOR_COLUMNS = ("posterior", "parameter", "prior", "lower", "upper", "unit", "condition")
+
+
+def prior_rows(priors: dict) -> list:
+    """Rows (PRIOR_COLUMNS) of the ``priors`` of budget.json; an unbounded side reads -inf/inf."""
+    bound = lambda v, side: side if v is None else format(v, ".6g")  # noqa: E731
+    return [
+        [run["posterior"], p["parameter"], p["family"], bound(p["lower"], "-inf")]
+        + [bound(p["upper"], "inf"), p["unit"], p["condition"] or p["note"]]
+        for run in priors.values()
+        for p in run["parameters"]
+    ]
+
+
+def priors_markdown(priors: dict) -> str:
+    """The Priors section of budget.md: every sampled parameter's prior family, bounds and unit."""
+    if not priors:
+        return "## Priors\n\nNone: Laplace posteriors (Gaussians about the least-squares fits)."
+    rows = ["## Priors", "", "| " + " | ".join(PRIOR_COLUMNS) + " |", "|---" * 7 + "|"]
+    rows += ["| " + " | ".join(c.replace("|", "\\|") for c in r) + " |" for r in prior_rows(priors)]
+    rows += ["", "log-uniform priors are sampled as the logarithm of the parameter."]
+    return "\n".join(rows)

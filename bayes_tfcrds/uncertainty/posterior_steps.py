@@ -24,7 +24,7 @@ from bayes_tfcrds.fit.refine import (
 )
 from bayes_tfcrds.inference.diagnostics import Gates
 from bayes_tfcrds.inference.moves import MixtureProposal, mode_jump_move
-from bayes_tfcrds.inference.posteriors import H_PRIOR, BeatNotePosterior, LinePosterior
+from bayes_tfcrds.inference.posteriors import H_PRIORS, BeatNotePosterior, LinePosterior
 from bayes_tfcrds.inference.runner import run_ensembles
 from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, transfer_function_array
 from bayes_tfcrds.uncertainty.propagate import model_of
@@ -72,8 +72,13 @@ def _sample(
     derived=None,
     gates=Gates(),
     modes=None,
+    units=None,
 ):
-    """emcee on ``post`` with the budget's ensembles, walkers, lengths and moves."""
+    """emcee on ``post`` with the budget's ensembles, walkers, lengths and moves.
+
+    The posterior's priors go with the run: they name the natural-unit parameters that are
+    diagnosed and saved, and every output records them.
+    """
     return run_ensembles(
         post,
         p0,
@@ -90,6 +95,8 @@ def _sample(
         moves=sampler_moves(modes),
         derived_fn=derived,
         gates=gates,
+        priors=post.priors,
+        units=units,
     )
 
 
@@ -173,7 +180,7 @@ def _beat_posterior(config, options, beat=None):
     x0 = post.to_sample(beat.params, beat.scale)
     # initial spread: the least-squares covariance, in sample space (log params: relative sd)
     nat = np.append(beat.params.as_vector(BEAT_FREE), beat.scale)
-    spread = np.where([n.startswith("log_") for n in post.sample_names], sd0 / np.abs(nat), sd0)
+    spread = np.where([p.is_log for p in post.priors], sd0 / np.abs(nat), sd0)
 
     def p0(r, n):
         return dispersed_starts(post, x0, spread, r, n)
@@ -201,14 +208,9 @@ def beat_modes(post, beat) -> MixtureProposal:
     no longer changes H where it is measured); a Student-t cannot represent it and walkers
     started over it drift for the whole run, so it is left out, as the local moves alone would.
     """
-    is_log = np.array([n.startswith("log_") for n in post.sample_names])
-    width = np.array(
-        [
-            np.diff(np.log(H_PRIOR[n])) if log else np.diff(H_PRIOR[n])
-            for n, log in zip(list(BEAT_FREE) + ["scale"], is_log)
-        ],
-        float,
-    ).ravel()
+    is_log = np.array([p.is_log for p in post.priors])
+    # widths of both A_r branches: the scale of the physical domain, not of the branch kept
+    width = np.array([H_PRIORS[p.parameter].sample_width for p in post.priors])
     means, covs, log_ev = [], [], []
     for fit in (beat, *beat.alternatives):
         m = post.to_sample(fit.params, fit.scale)
@@ -279,6 +281,11 @@ def h_predictions(post, ringdowns):
 
     names = tuple(f"{part}_H_{fk:.3g}Hz" for part in ("re", "im") for fk in f) + ("scale",)
     return derived, names
+
+
+def h_prediction_units(gated) -> dict:
+    """Units of the derived H(f) values (normalised H: dimensionless)."""
+    return {n: "1" for n in gated if n != "scale"}
 
 
 def _pool(beat, post, run, rng, size: int) -> np.ndarray:
@@ -371,6 +378,7 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
             derived=derived,
             gates=Gates(gated=gated),
             modes=modes,
+            units=h_prediction_units(gated),
         )
     if options.method != "tf-crds" or not options.refine_free:
         draws = _pool(beat, post, run, rng, options.n_h_draws)
@@ -465,3 +473,15 @@ def line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress
         return x
 
     return _sample(post, p0, lsq.names, x0.size, rng, options, backend, progress, label)
+
+
+def priors_summary(runs: dict) -> dict:
+    """The priors of every sampled posterior, read from the posteriors the samplers ran on.
+
+    {run key: {"posterior": its label, "parameters": [Prior.to_dict(), ...]}}; empty for the
+    Laplace path, which samples nothing (Gaussians about the least-squares fits).
+    """
+    return {
+        k: {"posterior": run.label, "parameters": [p.to_dict() for p in run.priors]}
+        for k, run in runs.items()
+    }
