@@ -2,7 +2,7 @@
 
 The beat-note fit of H, ring-down decay times (CRDS, TF-CRDS), the Appendix B refinement of H on
 many transients, the H calibration that combines them, spectra, line-profile fits and the line
-analysis of one configuration.
+analysis of one configuration; their notebook views (``fit.views``).
 
-May import: core, physics (bundle records are read by their fields, never imported).
+May import: core, output, physics (bundle records are read by their fields, never imported).
 """
