@@ -23,7 +23,7 @@ from bayes_tfcrds.fit.h_calibration import (
     calibrate,
     fit_config,
 )
-from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
+from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line, parameter_unit
 from bayes_tfcrds.fit.ringdown import RingdownFits
 from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
 from bayes_tfcrds.physics.linedata import load_line
@@ -232,7 +232,11 @@ class LineAnalysis:
             "line_area": _area_entry(lf.line_area, lf.line_area_u),
             "intensity": intensity_entry(lf.line_area, lf.line_area_u, n, self.temperature_k),
             "parameters": {
-                name: {"value": float(v), "u": float(np.sqrt(lf.cov[i, i]))}
+                name: {
+                    "value": float(v),
+                    "u": float(np.sqrt(lf.cov[i, i])),
+                    "unit": parameter_unit(name, "absorption"),  # SI, as the fit
+                }
                 for i, (name, v) in enumerate(zip(lf.names, lf.values))
             },
             "correlation": {

@@ -13,6 +13,7 @@ import math
 import numpy as np
 
 from bayes_tfcrds.core.constants import line_area_to_cm2
+from bayes_tfcrds.fit.line import parameter_unit
 from bayes_tfcrds.output.notebook import (
     LEGEND_ABOVE,
     data_and_residual_axes,
@@ -321,17 +322,6 @@ def plot_calibration(cal, ax=None):
 # --------------------------------------------------------------------------- line fits
 
 
-def parameter_unit(name: str, kind: str) -> str:
-    """Unit of a line-fit parameter (SI): A in Hz/m, widths and positions in Hz."""
-    if name == "line_area":
-        return "Hz/m"
-    if name.startswith("baseline"):
-        return "1/m" if kind == "absorption" else "Hz"
-    if name.startswith("slope"):
-        return "1/(m Hz)" if kind == "absorption" else "1"
-    return "Hz"
-
-
 def _kind_of(lf, name: str) -> str:
     digits = name.removeprefix("baseline").removeprefix("slope")
     k = int(digits) if digits.isdigit() else 0
@@ -344,7 +334,7 @@ def _line_rows(lf) -> list:
         flag = " (held at 0)" if n in lf.at_bound else " (< 0)" if n in lf.unphysical else ""
         rows.append([n, fmt(lf.value(n), lf.stderr(n)) + flag, parameter_unit(n, _kind_of(lf, n))])
     a, ua = lf.line_area_cm2()
-    rows.append(["line_area", fmt(a, ua), "cm^-2"])
+    rows.append(["line_area (spectroscopic unit)", fmt(a, ua), "cm^-2"])
     return rows
 
 

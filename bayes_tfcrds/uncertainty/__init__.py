@@ -1,7 +1,7 @@
 """Uncertainty of the line area.
 
 Propagation of H into tau and A, the posteriors the budget samples, the GUM budget of A, S and
-A/A_ref (run_budget), and its output files.
+A/A_ref (run_budget), its output files and its notebook views (``uncertainty.views``).
 
 May import: core, output, physics, fit, inference.
 """
