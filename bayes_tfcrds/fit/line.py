@@ -42,17 +42,6 @@ NONNEGATIVE = {"gamma0_hz", "line_area"}
 PHYSICAL_NONNEGATIVE = ("gamma2_hz", "nu_vc_hz")
 
 
-def parameter_unit(name: str, kind: str) -> str:
-    """Unit of a line-fit parameter (SI): A in Hz/m, widths and positions in Hz."""
-    if name == "line_area":
-        return "Hz/m"
-    if name.startswith("baseline"):
-        return "1/m" if kind == "absorption" else "Hz"
-    if name.startswith("slope"):
-        return "1/(m Hz)" if kind == "absorption" else "1"
-    return "Hz"
-
-
 @dataclass(frozen=True)
 class LineFit:
     """A line-shape fit: parameter ``names``/``values``/``cov`` (SI), chi2 and residuals.

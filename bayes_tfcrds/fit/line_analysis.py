@@ -23,9 +23,10 @@ from bayes_tfcrds.fit.h_calibration import (
     calibrate,
     fit_config,
 )
-from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line, parameter_unit
+from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
 from bayes_tfcrds.fit.ringdown import RingdownFits
 from bayes_tfcrds.fit.spectrum import SpectrumData, cmds_spectrum, crds_spectrum
+from bayes_tfcrds.fit.views import parameter_unit
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
 

@@ -13,7 +13,6 @@ import math
 import numpy as np
 
 from bayes_tfcrds.core.constants import line_area_to_cm2
-from bayes_tfcrds.fit.line import parameter_unit
 from bayes_tfcrds.output.notebook import (
     LEGEND_ABOVE,
     data_and_residual_axes,
@@ -320,6 +319,17 @@ def plot_calibration(cal, ax=None):
 
 
 # --------------------------------------------------------------------------- line fits
+
+
+def parameter_unit(name: str, kind: str) -> str:
+    """Unit of a line-fit parameter (SI): A in Hz/m, widths and positions in Hz."""
+    if name == "line_area":
+        return "Hz/m"
+    if name.startswith("baseline"):
+        return "1/m" if kind == "absorption" else "Hz"
+    if name.startswith("slope"):
+        return "1/(m Hz)" if kind == "absorption" else "1"
+    return "Hz"
 
 
 def _kind_of(lf, name: str) -> str:
