@@ -14,14 +14,21 @@ The pipeline, one subpackage per stage (imports go one way, down this list)::
     studies     declarative studies, the coverage study and the demo
     cli         ``bayes-tfcrds``: parses, calls, prints
 
-The main job in Python::
+The main job in Python (the README's "Python" section runs it in a notebook)::
 
     import numpy as np
     import bayes_tfcrds as bt
 
     bundle, truth = bt.simulate_campaign(["letter-D2"], np.random.default_rng(7))
-    line = bt.analyse_line(bundle, bundle.configs["D2"], method="tf-crds", t_cut_s=4e-6)
-    print(line.line_area, line.ratio)
+    config = bundle.configs["D2"]
+    calibration = bt.calibrate(config)                    # H: beat note, refined on ring-downs
+    fits = bt.fit_config(config, [4e-6], calibration=calibration)       # every decay time
+    line = bt.analyse_line(bundle, config, t_cut_s=4e-6, calibration=calibration)
+    budget = bt.run_budget(bundle, config, bt.BudgetOptions(), np.random.default_rng(0))
+    found = bt.discover(bundle, "D2")
+
+Every result has ``summary()`` (text), ``to_dict()`` (JSON, units labelled), an HTML table in
+Jupyter and ``plot()`` (a matplotlib Figure).
 
 Names are imported on first use, so ``import bayes_tfcrds`` (and the CLI) start fast.
 """
@@ -47,6 +54,7 @@ _API = {
     "simulate_campaign": "bayes_tfcrds.simulate.campaign",
     "calibrate": "bayes_tfcrds.fit.h_calibration",
     "Calibration": "bayes_tfcrds.fit.h_calibration",
+    "fit_config": "bayes_tfcrds.fit.h_calibration",
     "fit_ringdowns": "bayes_tfcrds.fit.ringdown",
     "RingdownFits": "bayes_tfcrds.fit.ringdown",
     "fit_line": "bayes_tfcrds.fit.line",
@@ -78,6 +86,7 @@ __all__ = [
     "simulate_campaign",
     "calibrate",
     "Calibration",
+    "fit_config",
     "fit_ringdowns",
     "RingdownFits",
     "fit_line",
@@ -115,7 +124,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.core.quantity import Quantity
     from bayes_tfcrds.discovery.workflow import DiscoveryResult, discover
-    from bayes_tfcrds.fit.h_calibration import Calibration, calibrate
+    from bayes_tfcrds.fit.h_calibration import Calibration, calibrate, fit_config
     from bayes_tfcrds.fit.line import LineFit, fit_line
     from bayes_tfcrds.fit.line_analysis import LineAnalysis, analyse_line
     from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns

@@ -715,8 +715,21 @@ def validate_file(path) -> tuple[Bundle | None, list[Violation], list[Violation]
 def load_bundle(path) -> Bundle:
     """Load a bundle (SI units, arrays read-only).
 
-    Raises BundleError listing every violation; warnings (e.g. clipped transients) are available
-    from validate_file.
+    Parameters
+    ----------
+    path : str or pathlib.Path
+        The HDF5 measurement bundle (``bayes_tfcrds/data/FORMAT.md``).
+
+    Returns
+    -------
+    Bundle
+        The sample, and one configuration per ``/configs/NAME`` (``bundle.configs["D2"]``).
+
+    Raises
+    ------
+    BundleError
+        Listing every violation of the format, each with its path in the file. Warnings (e.g.
+        clipped transients) are available from :func:`validate_file`.
     """
     bundle, errors, _ = validate_file(path)
     if errors:

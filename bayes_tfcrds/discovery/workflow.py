@@ -657,6 +657,8 @@ def try_candidate(
 
 @dataclass
 class DiscoveryResult:
+    """The effects discovery added to the start model, step by step, and the gaps it left."""
+
     config: str
     start: ExperimentModel
     steps: list
@@ -667,7 +669,30 @@ class DiscoveryResult:
     seconds: float
     noise: object = None  # NoiseDiagnosis of the ring-downs at the start (fit.noise), or None
 
+    def summary(self) -> str:
+        """Plain text: the steps (effect, evidence, fitted parameters with units), final gaps."""
+        from bayes_tfcrds.discovery.views import discovery_text
+
+        return discovery_text(self)
+
+    def to_dict(self) -> dict:
+        """The JSON record of ``discovery.json`` (same as :meth:`to_json`)."""
+        return self.to_json()
+
+    def _repr_html_(self) -> str:
+        from bayes_tfcrds.discovery.views import discovery_html
+
+        return discovery_html(self)
+
+    def plot(self, ax=None):
+        """|z| of every gap after each step (the gaps shrinking); a matplotlib Figure."""
+        from bayes_tfcrds.discovery.views import plot_discovery
+
+        return plot_discovery(self, ax)
+
     def to_json(self) -> dict:
+        """The ``discovery.json`` record."""
+
         def gaps(g):
             return {
                 k: {
@@ -786,6 +811,29 @@ def discover(
     """Greedy forward selection of missing effects on one configuration (see the module doc).
 
     ``progress`` is an optional callable taking one line of text.
+
+    Parameters
+    ----------
+    bundle : Bundle
+        The measurement.
+    config_name : str
+        The configuration's name (``"D2"``).
+    start : ExperimentModel or str, optional
+        The declared model (default ``crds+voigt``; e.g. ``"transfer_function,speed_dependence"``).
+    t_cuts : sequence of float
+        Truncation times (s) the gaps are measured at.
+    threshold : float
+        Delta BIC an effect needs to be added.
+    max_steps : int
+        At most this many effects are added.
+    progress : callable, optional
+        Receives one line of text per candidate and step.
+
+    Returns
+    -------
+    DiscoveryResult
+        The effects added with their evidence and parameters, the gaps before and after;
+        ``summary()``, ``to_dict()``, ``plot()``.
     """
     t0 = time.perf_counter()
     say = progress or (lambda s: None)

@@ -2,9 +2,9 @@
 
 The beat-note fit of H, ring-down decay times (CRDS, TF-CRDS), the Appendix B refinement of H on
 many transients, the H calibration that combines them, spectra, line-profile fits, the line
-analysis of one configuration, and the fits extended by instrument effects (static nonlinearity,
+analysis of one configuration, the fits extended by instrument effects (static nonlinearity,
 baseline drift, extra exponentials, beating, etalon, neighbour line) that the budget sizes and
-discovery selects.
+discovery selects, and the notebook views of the results (``fit.views``).
 
-May import: core, physics (bundle records are read by their fields, never imported).
+May import: core, output, physics (bundle records are read by their fields, never imported).
 """

@@ -35,7 +35,31 @@ class Calibration:
 
     @property
     def params(self) -> TFParams:
+        """The H used for TF-CRDS: the refined one when there is a refinement."""
         return self.refined.params if self.refined is not None else self.beat.params
+
+    def summary(self) -> str:
+        """Plain text: H's parameters (beat note and refined) with their units, chi2_red, z."""
+        from bayes_tfcrds.fit.views import calibration_text
+
+        return calibration_text(self)
+
+    def to_dict(self) -> dict:
+        """JSON-ready record of the beat-note fit and the refinement, units labelled."""
+        from bayes_tfcrds.fit.views import calibration_dict
+
+        return calibration_dict(self)
+
+    def _repr_html_(self) -> str:
+        from bayes_tfcrds.fit.views import calibration_html
+
+        return calibration_html(self)
+
+    def plot(self, ax=None):
+        """The beat note's |H| with the fitted and the refined K |H(f)|, and the residuals."""
+        from bayes_tfcrds.fit.views import plot_calibration
+
+        return plot_calibration(self, ax)
 
 
 MIRROR_DCHI2 = 9.0  # beat-note chi2 difference below which |H| alone cannot choose (3 sigma)
@@ -258,6 +282,32 @@ def calibrate(
     With ``update`` (the default) the refinement updates the beat note (a parameter the ring-downs
     do not constrain stays where the beat note puts it); without, the ring-downs alone decide, as
     in the letter.
+
+    Parameters
+    ----------
+    config : Configuration
+        One configuration of a bundle (``bundle.configs["D2"]``): its beat note and ring-downs.
+    t_cuts_s : sequence of float
+        Truncation times (s) of each refinement record.
+    window : str
+        ``extinction`` or ``letter`` (the forward model's window).
+    refine : bool
+        Refine H on the ring-downs (Appendix B) after the beat-note fit.
+    free : tuple of str
+        The H parameters refined (default f_c).
+    variant : str
+        ``causal`` or ``letter`` form of Eq. 2.
+    n_points : int
+        Records the refinement uses, spanning the decay times.
+    update : bool
+        The refinement updates the beat note (True) or replaces it (False).
+    beat : TFFit, optional
+        A beat-note fit already made.
+
+    Returns
+    -------
+    Calibration
+        ``.params`` is the H to use; ``summary()``, ``plot()`` show the beat note and the fits.
     """
     if beat is None or beat.params.variant != variant:
         beat = beat_note_fit(config, variant=variant, window=window)
@@ -284,7 +334,28 @@ def fit_config(
     calibration: Calibration | None = None,
     keep_residuals: bool = False,
 ) -> RingdownFits:
-    """Fit every transient of ``config`` at every t_cut (s) with CRDS or TF-CRDS."""
+    """Fit every transient of ``config`` at every t_cut (s) with CRDS or TF-CRDS.
+
+    Parameters
+    ----------
+    config : Configuration
+        One configuration of a bundle.
+    t_cuts_s : sequence of float
+        Truncation times (s) from laser extinction.
+    method : str
+        ``crds`` (b + B exp(-t/tau)) or ``tf-crds`` (the forward model through H).
+    window : str
+        ``extinction`` or ``letter``.
+    calibration : Calibration, optional
+        The H for tf-crds (made by :func:`calibrate` when not given).
+    keep_residuals : bool
+        Keep every residual (V); ``RingdownFits.plot`` refits one transient otherwise.
+
+    Returns
+    -------
+    RingdownFits
+        tau (s), u(tau), chi2_red and status per point and t_cut.
+    """
     tf = None
     if method == "tf-crds":
         if calibration is None:

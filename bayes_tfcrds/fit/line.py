@@ -13,7 +13,7 @@ could determine it); shape parameters a profile does not use are absent.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import optimize
@@ -102,6 +102,52 @@ class LineFit:
     @property
     def position_hz(self) -> float:
         return self.nu_ref_hz + self.value("position_offset_hz")
+
+    def model(self, nu_hz, k: int = 0) -> np.ndarray:
+        """The fitted model of spectrum ``k`` at frequencies ``nu_hz`` (Hz), in its y unit.
+
+        1/m for absorption, Hz for dispersion (mode shifts); baseline included.
+        """
+        names = self.names
+        layout = LineModel(
+            profile=self.profile,
+            shape_free=names[2 : names.index("baseline0")],
+            kinds=tuple(s.kind for s in self.spectra),
+            slopes=tuple(f"slope{i}" in names for i in range(len(self.spectra))),
+            nu_ref_hz=self.nu_ref_hz,
+            doppler_hwhm_hz=self.doppler_hwhm_hz,
+            fixed=self.fixed,
+        )
+        grid = [
+            replace(s, nu_hz=np.asarray(nu_hz, float), y=np.zeros(np.size(nu_hz)), u=None)
+            if i == k
+            else s
+            for i, s in enumerate(self.spectra)
+        ]
+        return layout.predict(self.values, grid)[k]
+
+    def summary(self) -> str:
+        """Plain-text table of the parameters with their units, chi2_red and A in cm^-2."""
+        from bayes_tfcrds.fit.views import line_fit_text
+
+        return line_fit_text(self)
+
+    def to_dict(self) -> dict:
+        """JSON-ready record: every parameter with its u and unit, A also in cm^-2."""
+        from bayes_tfcrds.fit.views import line_fit_dict
+
+        return line_fit_dict(self)
+
+    def _repr_html_(self) -> str:
+        from bayes_tfcrds.fit.views import line_fit_html
+
+        return line_fit_html(self)
+
+    def plot(self, ax=None):
+        """Each spectrum with the fitted profile and its residuals; a matplotlib Figure."""
+        from bayes_tfcrds.fit.views import plot_line_fit
+
+        return plot_line_fit(self, ax)
 
 
 @dataclass(frozen=True)

@@ -6,7 +6,7 @@ units at that edge, each labelled.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -24,7 +24,9 @@ from bayes_tfcrds.fit.h_calibration import (
     fit_config,
 )
 from bayes_tfcrds.fit.line import PHYSICAL_NONNEGATIVE, LineFit, fit_line
+from bayes_tfcrds.fit.ringdown import RingdownFits
 from bayes_tfcrds.fit.spectrum import SpectrumData, check_repeats, cmds_spectrum, crds_spectrum
+from bayes_tfcrds.fit.views import parameter_unit
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
 
@@ -154,6 +156,7 @@ class LineAnalysis:
     calibration: object | None = None
     noise: object | None = None  # the NoiseDiagnosis of the ring-downs (fit.noise)
     input_note: str | None = None  # what the input was, when not ring-down records
+    ringdown_fits: RingdownFits | None = field(default=None, repr=False)  # decay times behind it
 
     @property
     def line_area(self) -> Quantity:
@@ -202,6 +205,23 @@ class LineAnalysis:
         """Shape parameters held at 0 by ``physical_bounds`` (not free at the solution: u = 0)."""
         return [n for n in self.line_fit.at_bound if n in PHYSICAL_NONNEGATIVE]
 
+    def summary(self) -> str:
+        """Plain text: A, A_ref, A/A_ref, S(296 K) with units, chi2_red, points left out."""
+        from bayes_tfcrds.fit.views import line_analysis_text
+
+        return line_analysis_text(self)
+
+    def _repr_html_(self) -> str:
+        from bayes_tfcrds.fit.views import line_analysis_html
+
+        return line_analysis_html(self)
+
+    def plot(self, ax=None):
+        """The CRDS spectrum (and the CMDS reference) with the fitted profile and residuals."""
+        from bayes_tfcrds.fit.views import plot_line_analysis
+
+        return plot_line_analysis(self, ax)
+
     def to_dict(self) -> dict:
         """The JSON record of ``bayes-tfcrds linefit`` (and of the demo's ``results.json``)."""
         lf, ref, n = self.line_fit, self.reference_fit, self.number_density_m3
@@ -214,7 +234,11 @@ class LineAnalysis:
             "line_area": _area_entry(lf.line_area, lf.line_area_u),
             "intensity": intensity_entry(lf.line_area, lf.line_area_u, n, self.temperature_k),
             "parameters": {
-                name: {"value": float(v), "u": float(np.sqrt(lf.cov[i, i]))}
+                name: {
+                    "value": float(v),
+                    "u": float(np.sqrt(lf.cov[i, i])),
+                    "unit": parameter_unit(name, "absorption"),  # SI, as the fit
+                }
                 for i, (name, v) in enumerate(zip(lf.names, lf.values))
             },
             "correlation": {
@@ -276,6 +300,33 @@ def analyse_line(
     The ring-down noise's colour is diagnosed and accounted for first
     (:func:`~bayes_tfcrds.fit.h_calibration.account_for_noise_colour`), unless ``noise`` gives
     the NoiseDiagnosis of a ``config`` already returned by it (many analyses of one config).
+
+    Parameters
+    ----------
+    bundle : Bundle
+        The measurement (its sample gives T, p, x and the Doppler width).
+    config : Configuration
+        The configuration analysed (``bundle.configs["D2"]``).
+    method : str
+        ``crds`` or ``tf-crds``.
+    window : str
+        ``extinction`` or ``letter`` (tf-crds).
+    t_cut_s : float
+        Truncation time (s) from laser extinction.
+    profile_name : str
+        Line profile (``qsdhcp``, ``sdvp``, ``voigt``, ...).
+    calibration : Calibration, optional
+        H for tf-crds (made here when not given).
+    physical_bounds : bool
+        Keep Gamma2, nu_VC >= 0 in the CRDS line fit.
+    noise : NoiseDiagnosis, optional
+        The noise colour of ``config`` if already diagnosed.
+
+    Returns
+    -------
+    LineAnalysis
+        A (cm^-2 via ``.line_area``), A_ref, A/A_ref, the line fit with its residuals, the ring-down
+        fits behind it; ``summary()``, ``to_dict()``, ``plot()``.
     """
     gd = doppler_of(bundle.sample)
     check_t_cuts(config, [t_cut_s])
@@ -322,6 +373,7 @@ def analyse_line(
         ),
         calibration=calibration,
         noise=noise,
+        ringdown_fits=fits,
     )
 
 

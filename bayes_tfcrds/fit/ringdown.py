@@ -499,6 +499,72 @@ class RingdownFits:
 
     record_end_s: float = np.inf
     saturated: np.ndarray | None = None
+    # what the fits were made of, for a look at one transient (:meth:`trace`, :meth:`plot`)
+    data: object = field(default=None, repr=False, compare=False)  # the RingdownData fitted
+    tf: TFParams | None = None  # H of a tf-crds fit
+
+    def trace(self, i: int, j: int = 0) -> dict:
+        """Transient ``i`` at t_cut index ``j``: time (s), signal, fitted model and residual (V).
+
+        ``fitted`` marks the samples the fit used (t >= t_cut); model and residual are NaN
+        elsewhere. Residuals kept by the fit (``keep_residuals``) are used as they are; otherwise
+        this one transient is fitted again with the same model, H and noise (the same numbers).
+        """
+        if self.data is None:
+            raise ValueError("these fits carry no ring-down data: make them with fit_ringdowns")
+        if self.clipped[i] or not np.isfinite(self.tau_s[i, j]):
+            raise ValueError(f"transient {i} was not fitted (status {self.status(i, j)!r})")
+        t = np.asarray(self.data.time_s, float)
+        y = np.asarray(self.data.signal_v[i], float)
+        if self.residuals_v is not None:
+            resid = self.residuals_v[i, j]
+        else:
+            noise = self.data.fit_noise_v
+            resid = fit_transients(
+                t,
+                y[None, :],
+                [self.t_cut_s[j]],
+                method=self.method,
+                tf=self.tf,
+                window=self.window or "extinction",
+                noise_v=None if noise is None else np.asarray(noise)[[i]],
+                keep_residuals=True,
+            ).residuals_v[0]
+        fitted = np.arange(t.size) >= first_index_at(t[0], t[1] - t[0], self.t_cut_s[j])
+        resid = np.where(fitted, resid, np.nan)
+        return {
+            "time_s": t,
+            "signal_v": y,
+            "model_v": y - resid,
+            "residual_v": resid,
+            "fitted": fitted,
+        }
+
+    def summary(self) -> str:
+        """Plain-text summary: method, t_cuts (µs), tau range (µs), chi2_red, statuses."""
+        from bayes_tfcrds.fit.views import ringdowns_text
+
+        return ringdowns_text(self)
+
+    def to_dict(self) -> dict:
+        """JSON-ready record of every fit, each quantity with its unit."""
+        from bayes_tfcrds.fit.views import ringdowns_dict
+
+        return ringdowns_dict(self)
+
+    def _repr_html_(self) -> str:
+        from bayes_tfcrds.fit.views import ringdowns_html
+
+        return ringdowns_html(self)
+
+    def plot(self, i: int | None = None, j: int = 0, ax=None):
+        """One transient (default the line centre's, shortest tau) with its fit and residuals.
+
+        Returns a matplotlib Figure; see :func:`bayes_tfcrds.fit.views.plot_ringdown`.
+        """
+        from bayes_tfcrds.fit.views import plot_ringdown
+
+        return plot_ringdown(self, i, j, ax)
 
     def status(self, i, j) -> str:
         """``ok``, or why the fit at point i and t_cut j is not to be trusted as it stands.
@@ -558,6 +624,26 @@ def fit_ringdowns(
 
     Clipped transients (``ringdowns.clipped``) are excluded and reported, never fitted as if
     they were fine.
+
+    Parameters
+    ----------
+    ringdowns : RingdownData
+        ``config.ringdowns`` of a bundle (time axis, signals in V, noise).
+    t_cuts_s : sequence of float
+        Truncation times (s) from laser extinction.
+    method : str
+        ``crds`` or ``tf-crds``.
+    tf : TFParams, optional
+        H for tf-crds (``calibrate(config).params``).
+    window : str
+        ``extinction`` or ``letter`` (tf-crds).
+    keep_residuals : bool
+        Keep the residuals (V) of every fit.
+
+    Returns
+    -------
+    RingdownFits
+        Arrays (points x t_cuts): tau_s, tau_u_s, amplitude_v, offset_v, chi2_red, status.
     """
     t_cuts = np.atleast_1d(np.asarray(t_cuts_s, float))
     m, c = ringdowns.signal_v.shape[0], t_cuts.size
@@ -611,4 +697,6 @@ def fit_ringdowns(
         residuals_v=resid,
         record_end_s=float(ringdowns.time_s[-1]),
         saturated=np.asarray(getattr(ringdowns, "saturated", np.zeros(m, bool)), bool),
+        data=ringdowns,
+        tf=tf if method == "tf-crds" else None,
     )

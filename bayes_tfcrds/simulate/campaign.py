@@ -665,6 +665,23 @@ def simulate_campaign(
     ``chain_tf`` a preset's chain (preset name -> TFParams, used where the transfer-function
     effect is on) and ``noise_v`` its single-acquisition noise (preset name -> V);
     ``description`` the bundle's.
+
+    Parameters
+    ----------
+    presets : list of str or ChainPreset
+        ``letter-D1`` ... ``letter-D4`` (configuration ``D1`` ... ``D4``) or chains of one's own.
+    rng : numpy.random.Generator
+        The only source of randomness; the same seed gives the same bundle.
+    campaign : Campaign
+        Sample conditions, scan and digitizer (SI); ``Campaign(n_points=41, n_samples=8192,
+        n_avg=20)`` is a quick one (seconds).
+    effects, line_effects_default, streams, line, chain_tf, noise_v, description
+        As above.
+
+    Returns
+    -------
+    (Bundle, dict)
+        The measurement bundle and the truth it was simulated from (SI).
     """
     effects = dict(effects or {})
     if line_effects_default:

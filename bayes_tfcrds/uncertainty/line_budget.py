@@ -144,9 +144,26 @@ class BudgetOptions:
         return replace(self, n_steps=n, max_steps=most)
 
 
+class BudgetSummary(dict):
+    """The ``budget.json`` payload (a dict); calling it, ``result.summary()``, gives it as text.
+
+    A dict, so that ``result.summary["line_area"]`` reads the record as before; callable, so that
+    a notebook has the same ``summary()`` as every other result object.
+    """
+
+    def __call__(self) -> str:
+        from bayes_tfcrds.uncertainty.views import budget_text
+
+        return budget_text(self)
+
+
 @dataclass(frozen=True)
 class BudgetResult:
-    """Everything the budget run produced: the JSON summary and the artefacts behind it."""
+    """Everything the budget run produced: the JSON summary and the artefacts behind it.
+
+    ``summary`` is the ``budget.json`` record (a :class:`BudgetSummary`: ``summary()`` gives it
+    as text); :meth:`to_dict` adds the GUM budgets, :meth:`plot` draws the shares of u_c^2(A).
+    """
 
     summary: dict
     budget_a: Budget
@@ -157,6 +174,26 @@ class BudgetResult:
     tau_table: list = field(default_factory=list, repr=False)
     refined: object = field(default=None, repr=False)  # the refinement update (tf-crds)
     monte_carlo: BudgetMonteCarlo | None = None  # JCGM 101 of A, S(T_ref), A/A_ref (SI)
+
+    def __post_init__(self):
+        object.__setattr__(self, "summary", BudgetSummary(self.summary))
+
+    def to_dict(self) -> dict:
+        """JSON-ready: the ``budget.json`` record and the GUM budgets of A, S and A/A_ref."""
+        from bayes_tfcrds.uncertainty.views import budget_dict
+
+        return budget_dict(self)
+
+    def _repr_html_(self) -> str:
+        from bayes_tfcrds.uncertainty.views import budget_html
+
+        return budget_html(self.summary)
+
+    def plot(self, ax=None):
+        """Bar chart of each component's share of u_c^2(A) (%); a matplotlib Figure."""
+        from bayes_tfcrds.uncertainty.views import plot_budget
+
+        return plot_budget(self, ax)
 
     @property
     def status(self) -> str:
@@ -1083,6 +1120,28 @@ def run_budget(
     (tf-crds); decay times and line fits at every t_cut; the line posterior given H*; the
     sensitivity of A to H and the H-shifted draws of A (tf-crds); A_ref from CMDS; the budgets of
     A, S and A/A_ref; the summary with its convergence gates; the decay-time table.
+
+    Parameters
+    ----------
+    bundle : Bundle
+        The measurement.
+    config : Configuration
+        The configuration (``bundle.configs["D2"]``).
+    options : BudgetOptions
+        Method, t_cut (s), profile, posterior (``mcmc`` or ``laplace``, seconds) and sampler
+        lengths.
+    rng : numpy.random.Generator, optional
+        The only source of randomness (default seed 0).
+    outdir : str or pathlib.Path, optional
+        Folder for the chains (a rerun resumes them); None keeps everything in memory.
+    progress : bool
+        Show the samplers' progress.
+
+    Returns
+    -------
+    BudgetResult
+        ``line_area``, ``ratio``, ``intensity`` (Quantity, cm^-2 and cm/molecule), ``en``,
+        ``passed``; the GUM budgets; ``summary()``, ``to_dict()``, ``plot()`` (shares of u_c^2).
     """
     rng = np.random.default_rng(0) if rng is None else rng
     log.debug(f"budget of {config.name}: {options}")

@@ -1,0 +1,77 @@
+"""Notebook views of a :class:`~bayes_tfcrds.discovery.workflow.DiscoveryResult`.
+
+Rendering only: the steps as plain text and an HTML table, and the figure of every gap's |z|
+after each step (the gaps shrinking as effects are added).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from bayes_tfcrds.output.notebook import LEGEND_ABOVE, html_table, new_figure, text_table
+
+STEP_HEADER = ("step", "effect added", "evidence (Delta BIC)", "block", "fitted parameters")
+
+
+def _params(params: dict) -> str:
+    return "; ".join(
+        f"{k} = {v['value']:.4g} ± {v['u']:.2g} {v['unit']}".strip() for k, v in params.items()
+    )
+
+
+def _step_rows(result) -> list:
+    return [
+        [i + 1, s["effect"], f"{s['evidence']:.1f}", s["block"], _params(s["params"])]
+        for i, s in enumerate(result.steps)
+    ] or [["-", "nothing added", "", "", ""]]
+
+
+def _head(result) -> str:
+    final = result.evaluations[-1].state.model.label()
+    return (
+        f"discovery on configuration {result.config}: {result.start.label()} -> {final} "
+        f"(threshold Delta BIC {result.threshold:g}, {result.seconds:.1f} s)"
+    )
+
+
+def _gap_rows(result) -> list:
+    return [
+        [k, f"{v['z']:.2f}", v.get("where", "")] for k, v in result.evaluations[-1].gaps.items()
+    ]
+
+
+def discovery_text(result) -> str:
+    """The steps and the gaps the final model leaves, as plain text."""
+    out = [_head(result), text_table(STEP_HEADER, _step_rows(result))]
+    out.append("gaps of the final model (z: 0 when the model explains the data block):")
+    out.append(text_table(("gap", "z", "where"), _gap_rows(result)))
+    if result.noise is not None:
+        out.append(result.noise.summary_line())
+    return "\n".join(out)
+
+
+def discovery_html(result) -> str:
+    """The steps and the final gaps as two small HTML tables."""
+    return html_table(STEP_HEADER, _step_rows(result), caption=_head(result)) + html_table(
+        ("gap of the final model", "z", "where"), _gap_rows(result)
+    )
+
+
+def plot_discovery(result, ax=None):
+    """|z| of every gap after each step (log scale; dotted line at 3); a matplotlib Figure."""
+    if ax is None:
+        fig, axes = new_figure(1, 1)
+        ax = axes[0, 0]
+    else:
+        fig = ax.figure
+    xs = np.arange(len(result.evaluations))
+    for g in result.evaluations[0].gaps:
+        zs = [abs(e.gaps[g]["z"]) if g in e.gaps else np.nan for e in result.evaluations]
+        ax.plot(xs, np.maximum(zs, 1e-2), "o-", label=g)
+    ax.axhline(3, color="0.3", ls=":", lw=1)
+    ax.set_yscale("log")
+    ax.set_xticks(xs, ["start", *result.effects_added], rotation=20)
+    ax.set_xlabel("model after each step (effect added)")
+    ax.set_ylabel("|z| of each gap (1)")
+    ax.legend(ncols=3, frameon=False, fontsize="small", **LEGEND_ABOVE)
+    return fig
