@@ -15,7 +15,8 @@ Pipeline (each step a function of the bundle, the options and the seed):
    A_ref: emcee on the CMDS shifts.
 4. **Budget** (GUM, JCGM 100): ring-down noise, the beat-note posterior of H (one row: all its
    parameters through H(f)), each refined H parameter (correlated with the noise through the
-   shared records), the t_cut choice and the line-shape model choice for u(A); pressure,
+   shared records), the t_cut choice and the line-shape model (candidate profiles weighted by
+   their predictive evidence, :mod:`~bayes_tfcrds.uncertainty.line_shape_models`); pressure,
    temperature and mole fraction for the line intensity S at T_ref = 296 K (from S(T) = A/N at
    the sample's T through Q(T), E'' and stimulated emission); the CMDS reference for A/A_ref
    and E_n.
@@ -55,6 +56,12 @@ from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.physics.linedata import load_line
+from bayes_tfcrds.uncertainty.line_shape_models import (
+    DEFAULT_CANDIDATES,
+    ModelAverage,
+    average_candidates,
+    fit_candidates,
+)
 from bayes_tfcrds.uncertainty.posterior_steps import (
     IS_ESS_MIN,
     fit_transients_noise,
@@ -83,7 +90,7 @@ class BudgetOptions:
     t_cut_s: float = 4e-6
     t_cuts_s: tuple = DEFAULT_T_CUTS
     profile: str = "qsdhcp"
-    alt_profile: str = "sdvp"
+    shape_candidates: tuple = DEFAULT_CANDIDATES  # labels of line_shape_models.CANDIDATES
     refine_free: tuple = ("f_c_hz",)
     n_refine_points: int = 6
     posterior: str = "mcmc"  # or "laplace": Gaussian posteriors from the least-squares fits
@@ -197,7 +204,10 @@ class _Inputs:
 
 @dataclass(frozen=True)
 class _DecayTimes:
-    """Step 2: decay times at every t_cut, A per t_cut (Hz/m), the line fits at the chosen one."""
+    """Step 2: decay times at every t_cut, A per t_cut (Hz/m), the line fits at the chosen one.
+
+    ``shapes``: the candidate profiles' fits to that spectrum, weighted (the model average).
+    """
 
     fits: object
     t_cuts: np.ndarray
@@ -205,7 +215,7 @@ class _DecayTimes:
     area_by_tcut: dict
     spec: object
     lsq: object
-    alt: object
+    shapes: ModelAverage
 
 
 @dataclass(frozen=True)
@@ -329,7 +339,7 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     """Step 2.
 
     Decay times at all t_cuts with H*, a least-squares line fit per t_cut (for the t_cut row) and,
-    at the chosen t_cut, the profile and its alternative.
+    at the chosen t_cut, the profile and the candidate profiles (model average).
     """
     options, gd, nu_ref = inp.options, inp.gd, inp.nu_ref
     t_cuts = np.asarray(sorted(set(options.t_cuts_s) | {options.t_cut_s}), float)
@@ -343,8 +353,10 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     line_fits = [fit_line([sp], options.profile, gd, nu_ref) for sp in spectra]
     area_by_tcut = {float(tc): lf.line_area for tc, lf in zip(t_cuts, line_fits)}
     spec, lsq = spectra[j0], line_fits[j0]
-    alt = fit_line([spec], options.alt_profile, gd, nu_ref)
-    return _DecayTimes(fits, t_cuts, j0, area_by_tcut, spec, lsq, alt)
+    shapes = average_candidates(
+        fit_candidates(spec, gd, nu_ref, options.shape_candidates, primary=lsq)
+    )
+    return _DecayTimes(fits, t_cuts, j0, area_by_tcut, spec, lsq, shapes)
 
 
 def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
@@ -662,19 +674,23 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
             f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us",
         )
     )
+    shapes = dt.shapes
+    weights = ", ".join(f"{k} {w:.2g}" for k, w in shapes.weights.items())
     comps.append(
         Component(
-            f"line-shape model ({options.profile} vs {options.alt_profile})",
+            f"line-shape model (average of {len(shapes.candidates)} profiles)",
             None,
-            float(abs(dt.lsq.line_area - dt.alt.line_area) / np.sqrt(12)),
+            shapes.u_between,
             1.0,
             "Hz/m",
-            note="Type B: rectangular over the difference of the two profiles' A",
+            note="between-model sd sqrt(sum w_k (A_k - A_bar)^2), Akaike weights of the "
+            f"profiles fitted to the spectrum: {weights}",
         )
     )
     return Budget(
         quantity="line area A",
-        value=float(np.mean(a_total)),
+        # the model-averaged A: the profile's posterior mean moved by A_bar - A(profile)
+        value=float(np.mean(a_total) + shapes.line_area - dt.lsq.line_area),
         unit="Hz/m",
         components=tuple(comps),
         correlations=corr,
@@ -818,6 +834,10 @@ def _summary(
             }
             for c in budget_a.components
         ],
+        "line_shape_models": {
+            **dt.shapes.to_dict(),
+            "line_area_of_profile": float(line_area_to_cm2(dt.lsq.line_area)),
+        },
         "a_by_t_cut": {
             f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in dt.area_by_tcut.items()
         },

@@ -41,6 +41,8 @@ def write_outputs(result: BudgetResult, outdir, seed: int | None = None) -> list
         md += "\n\n" + refinement_markdown(refinement)
     if result.summary.get("noise"):
         md += "\n\n" + noise_markdown(result.summary["noise"])
+    if result.summary.get("line_shape_models"):
+        md += "\n\n" + line_shape_markdown(result.summary["line_shape_models"])
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
     atomic_write_text(out / "budget.csv", mark + result.budget_a.to_csv())
@@ -116,4 +118,29 @@ def refinement_markdown(refinement: dict) -> str:
         f"Joint tension chi2 = {refinement['tension_chi2']:.2f} ({refinement['tension_dof']} dof, "
         f"p = {refinement['tension_p']:.3g})" + (finding if refinement["in_tension"] else "")
     )
+    return "\n".join(rows)
+
+
+def line_shape_markdown(models: dict) -> str:
+    """The line-shape model section of budget.md: each candidate's fit, AIC, weight and A."""
+    rows = [
+        "## Line-shape model: candidate profiles",
+        "",
+        "| candidate | free shape parameters | chi2_red | AIC - AIC_min | weight | A (cm^-2) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in models["candidates"]:
+        fit = (
+            "fit failed | - | 0 | -"
+            if c["failed"]
+            else f"{c['chi2_red']:.3g} | {c['delta_aic']:.3g} | {c['weight']:.3g} | "
+            f"{c['line_area']:.7g}"
+        )
+        rows.append(f"| {c['label']} | {', '.join(c['shape_free'])} | {fit} |")
+    rows += [
+        "",
+        f"Model-averaged A = {models['line_area']:.7g} cm^-2, between-model sd "
+        f"{models['u_between']:.2g} cm^-2 ({models['method']}); A of the budget's profile "
+        f"{models['line_area_of_profile']:.7g} cm^-2.",
+    ]
     return "\n".join(rows)
