@@ -309,7 +309,7 @@ def claim_chains(outdir, fingerprint: dict) -> None:
 
 
 def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
-    """Check the inputs, spawn the four random streams, place the chain files.
+    """Check the inputs, spawn the five random streams, place the chain files.
 
     Refuses what cannot work before minutes of sampling (t_cut outside the record, CMDS
     elsewhere).
@@ -317,7 +317,8 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
     check_overlap(config)
     config, noise, beat = account_for_noise_colour(config, options.window)
-    streams = dict(zip(("h", "line", "cmds", "pair"), rng.spawn(4)))
+    # "shapes" last: spawning one more child leaves the first four streams as they were
+    streams = dict(zip(("h", "line", "cmds", "pair", "shapes"), rng.spawn(5)))
     backend = None
     if outdir is not None:  # made and claimed by run_budget, under the folder's lock
         backend = str(Path(outdir) / "chains.h5")
@@ -354,7 +355,8 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     area_by_tcut = {float(tc): lf.line_area for tc, lf in zip(t_cuts, line_fits)}
     spec, lsq = spectra[j0], line_fits[j0]
     shapes = average_candidates(
-        fit_candidates(spec, gd, nu_ref, options.shape_candidates, primary=lsq)
+        fit_candidates(spec, gd, nu_ref, options.shape_candidates, primary=lsq),
+        inp.streams["shapes"],
     )
     return _DecayTimes(fits, t_cuts, j0, area_by_tcut, spec, lsq, shapes)
 
@@ -683,8 +685,8 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows) -> Budget:
             shapes.u_between,
             1.0,
             "Hz/m",
-            note="between-model sd sqrt(sum w_k (A_k - A_bar)^2), Akaike weights of the "
-            f"profiles fitted to the spectrum: {weights}",
+            note="between-model sd sqrt(sum w_k (A_k - A_bar)^2), pseudo-BMA+ (Akaike) weights "
+            f"of the profiles fitted to the spectrum: {weights}",
         )
     )
     return Budget(

@@ -131,7 +131,7 @@ def line_shape_markdown(models: dict) -> str:
     ]
     for c in models["candidates"]:
         fit = (
-            "fit failed | - | 0 | -"
+            "fit failed | - | 0 | -"  # the reason is in budget.json
             if c["failed"]
             else f"{c['chi2_red']:.3g} | {c['delta_aic']:.3g} | {c['weight']:.3g} | "
             f"{c['line_area']:.7g}"
