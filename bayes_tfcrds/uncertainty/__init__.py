@@ -1,7 +1,8 @@
 """Uncertainty of the line area.
 
-Propagation of H into tau and A, the posteriors the budget samples, the GUM budget of A, S and
-A/A_ref (run_budget), and its output files.
+Propagation of H into tau and A, the posteriors the budget samples, the line-shape model
+average over candidate profiles, the GUM budget of A, S and A/A_ref (run_budget), and its output
+files.
 
 May import: core, output, physics, fit, inference.
 """
