@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from bayes_tfcrds.output.notebook import LEGEND_ABOVE, html_table, new_figure, text_table
+from bayes_tfcrds.output.plotting import house_style
 
 STEP_HEADER = ("step", "effect added", "evidence (Delta BIC)", "block", "fitted parameters")
 
@@ -57,6 +58,7 @@ def discovery_html(result) -> str:
     )
 
 
+@house_style
 def plot_discovery(result, ax=None):
     """|z| of every gap after each step (log scale; dotted line at 3); a matplotlib Figure."""
     if ax is None:

@@ -30,8 +30,12 @@ DEFAULT_SHAPE_FREE = {
     "sdvp": ("gamma0_hz", "gamma2_hz"),
     "rautian": ("gamma0_hz", "nu_vc_hz"),
     "qsdhcp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz"),
+    "htp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz", "eta"),
 }
 NONNEGATIVE = {"gamma0_hz", "line_area"}
+# upper bounds of the estimator: the HTP is undefined at eta = 1 (eta/(1 - eta) in its
+# denominator); 0.99 keeps the profile finite wherever the least-squares search steps
+UPPER_BOUNDS = {"eta": 0.99}
 # Gamma2 and nu_VC are physically >= 0 but the least-squares estimate is not bounded there:
 # where the data barely resolve them (CMDS at 1e-3 noise: sd 0.26 Gamma0 and 0.54 Gamma0,
 # correlation -0.99) a bounded fit ends on a bound in half the draws, and holding one at 0
@@ -230,6 +234,7 @@ def _initial(spectra, model: LineModel, start: dict):
             "gamma2_hz": 0.01 * model.doppler_hwhm_hz,
             "nu_vc_hz": 0.01 * model.doppler_hwhm_hz,
             "delta2_hz": 0.0,
+            "eta": 0.1,
         }[name]
         theta.append(start.get(name, default))
     for i, (s, slope) in enumerate(zip(spectra, model.slopes)):
@@ -307,7 +312,7 @@ def fit_line(
     sol = optimize.least_squares(
         resid,
         theta0 / scale,
-        bounds=(lo / scale, np.full(len(names), np.inf)),
+        bounds=(lo / scale, np.array([UPPER_BOUNDS.get(n, np.inf) for n in names]) / scale),
         x_scale="jac",
         xtol=1e-13,
         ftol=1e-13,

@@ -21,6 +21,7 @@ from bayes_tfcrds.output.notebook import (
     new_figure,
     text_table,
 )
+from bayes_tfcrds.output.plotting import house_style
 from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, transfer_function
 
 H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1", "n_r": "1", "scale": "1"}
@@ -130,6 +131,7 @@ def ringdowns_dict(fits) -> dict:
     }
 
 
+@house_style
 def plot_ringdown(fits, i=None, j: int = 0, ax=None):
     """Transient ``i`` at t_cut index ``j``: data, fitted model and residuals against t (µs).
 
@@ -275,6 +277,7 @@ def calibration_dict(cal) -> dict:
     return out
 
 
+@house_style
 def plot_calibration(cal, ax=None):
     """Measured |H| (beat note, with its u) and K |H(f)| fitted, and refined, against f (Hz).
 
@@ -449,6 +452,7 @@ def _scaled_unit(e: int, unit: str) -> str:
     return f"{POWER[e]} {unit}"
 
 
+@house_style
 def plot_line_fit(lf, ax=None):
     """Every spectrum of the fit (one column each) with the profile and the residuals."""
     n = len(lf.spectra)
@@ -520,6 +524,7 @@ def line_analysis_html(la) -> str:
     return html_table(LA_HEADER, _line_analysis_rows(la), caption=_line_analysis_head(la))
 
 
+@house_style
 def plot_line_analysis(la, ax=None):
     """The CRDS spectrum with its fit and residuals, beside the CMDS reference fit if any."""
     a = line_area_to_cm2(la.line_fit.line_area)

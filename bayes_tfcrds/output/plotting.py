@@ -44,6 +44,24 @@ STYLE = {
 }
 
 
+def house_style(draw):
+    """Decorator: ``draw`` runs with :data:`STYLE` in force; the caller's rcParams come back after.
+
+    For the notebook views, which build Figure objects without pyplot: they get the house style's
+    fonts, caps and layout without changing the backend or the user's global settings.
+    """
+    import functools
+
+    @functools.wraps(draw)
+    def styled(*args, **kwargs):
+        import matplotlib
+
+        with matplotlib.rc_context(STYLE):
+            return draw(*args, **kwargs)
+
+    return styled
+
+
 def pyplot():
     """``matplotlib.pyplot`` with the Agg backend selected and :data:`STYLE` applied."""
     import matplotlib

@@ -15,7 +15,8 @@ two-Faddeeva-function formula of Tran, Ngo, Hartmann [JQSRT 129 (2013) 199], rew
 Doppler units so that it stays accurate and finite in every limit a fitter or a sampler
 visits (Gamma2 -> 0 and = 0, nu_VC -> 0, Doppler- and collision-dominated regimes, far
 wings); see ``_speed_averaged`` for the branches. Gaussian, Lorentzian, Voigt, speed-
-dependent Voigt and Rautian (hard-collision) profiles are thin limits of it.
+dependent Voigt and Rautian (hard-collision) profiles are thin limits of it; the full
+Hartmann-Tran profile (``htp``, correlation parameter eta) reuses its speed averages.
 """
 
 from __future__ import annotations
@@ -36,9 +37,11 @@ __all__ = [
     "voigt",
     "sdvoigt",
     "hard_collision",
+    "htp",
     "ProfileSpec",
     "PROFILES",
     "SHAPE_PARAMETERS",
+    "HTP_PARAMETERS",
     "profile",
 ]
 
@@ -250,6 +253,132 @@ def qsdhcp(
     return g.reshape(shape)
 
 
+# |u| = |kappa/(1 + kappa Z-)| below which T(u) (see ``_htp_remainder``) is summed from its
+# series (6 terms, truncation < 1e-17 relative at the switch) rather than formed as 1/u minus a
+# nearly equal term (which loses ~1/|u|^2 x 1e-16, 3e-13 relative at the switch).
+_T_SERIES_U = 0.02
+# coefficients of T(u) = sum_n (a_n - a_(n+1)) u^(2n+1), a_n = (-1)^n (2n-1)!!/2^n
+_T_COEFS = (1.5, -1.25, 2.625, -8.4375, 36.09375, -191.953125)
+
+
+def _htp_remainder(u):
+    """T(u) = 1/u + sqrt(pi) (1 - 1/u^2) w(i/u), dimensionless, finite as u -> 0 (T ~ 3u/2).
+
+    The second root's part of Ngo et al.'s B term is -sqrt(pi) kappa (1 - Z+^2) w(iZ+) =
+    kappa/u - kappa T(u) with Z+ = 1/u; kappa/u = 1 + kappa Z- cancels B's leading -1
+    analytically, so B stays exact through Gamma2 = Delta2 = 0 (u = 0, Z+ = infinity).
+    """
+    out = np.empty_like(u)
+    series = np.abs(u) < _T_SERIES_U
+    if np.any(series):
+        us = u[series]
+        u2 = us * us
+        acc = np.zeros_like(us)
+        for c in reversed(_T_COEFS):
+            acc = acc * u2 + c
+        out[series] = us * acc
+    rest = ~series
+    if np.any(rest):
+        ur = u[rest]
+        out[rest] = 1.0 / ur + _SQRT_PI * (1.0 - 1.0 / (ur * ur)) * _w_of_i_over_u(ur)
+    return out
+
+
+def _htp_b_term(z0, kappa):
+    """C2~ B of Ngo et al. (2013) Eq. 12 in Doppler units, dimensionless (``_speed_averaged``).
+
+    B~ = (1/C2~) [-1 + sqrt(pi)/(2 sqrt Y) ((1 - Z-^2) w(iZ-) - (1 - Z+^2) w(iZ+))] with
+    1/(2 sqrt Y) = kappa: returned is the bracket, written as kappa [sqrt(pi) (1 - Z-^2) w(iZ-)
+    + Z- - T(u)] (``_htp_remainder``), which is 0 at kappa = 0. Where the two w terms nearly
+    cancel (|4 kappa z0| > _XY_RATIO_SWITCH) Tran et al.'s Y -> 0 limit is used:
+    1 - 2 (X + 2Y) (1 - sqrt(pi) R w(iR)), X = z0/kappa, Y = 1/(4 kappa^2), R = sqrt(X + Y);
+    only its absolute accuracy matters (it is added to 1 in the profile's denominator).
+    """
+    b = np.empty_like(z0)
+    p = 4.0 * kappa * z0
+    s = np.sqrt(1.0 + p)
+    far = np.abs(p) > _XY_RATIO_SWITCH
+    near = ~far
+    if np.any(near):
+        zn, kn, sn = z0[near], kappa[near], s[near]
+        zm = 2.0 * zn / (1.0 + sn)
+        u = kn / (1.0 + kn * zm)
+        b[near] = kn * (_SQRT_PI * (1.0 - zm * zm) * wofz(1j * zm) + zm - _htp_remainder(u))
+    if np.any(far):
+        kf, zf = kappa[far], z0[far]
+        r = s[far] / (2.0 * kf)
+        r = np.where(r.real < 0, -r, r)
+        x_plus_2y = zf / kf + 0.5 / (kf * kf)
+        b[far] = 1.0 - 2.0 * x_plus_2y * _one_minus_sqrtpi_r_w(r)
+    return b
+
+
+def htp(
+    nu_hz,
+    nu0_hz,
+    doppler_hwhm_hz,
+    gamma0_hz,
+    gamma2_hz=0.0,
+    delta0_hz=0.0,
+    delta2_hz=0.0,
+    nu_vc_hz=0.0,
+    eta=0.0,
+):
+    """Hartmann-Tran profile (pCqSDHCP), complex, 1/Hz; ``eta`` the correlation parameter.
+
+    Hz inputs as :func:`qsdhcp`; eta (dimensionless, 0 <= eta < 1) is the share of the
+    velocity-changing collisions that also dephase [Ngo, Lisak, Tran, Hartmann, JQSRT 129
+    (2013) 89, Eqs. 9-12; Tennyson et al., Pure Appl. Chem. 86 (2014) 1931, the IUPAC
+    recommended profile]. With C0 = Gamma0 + i Delta0, C2 = Gamma2 + i Delta2:
+
+        C0~ = (1 - eta)(C0 - 3/2 C2) + nu_VC,   C2~ = (1 - eta) C2,
+        g = (1/pi) A / (1 - (nu_VC - eta (C0 - 3/2 C2)) A + eta C2 B),
+
+    A and B the speed averages of :func:`qsdhcp`'s machinery with C0~, C2~. eta = 0 is the
+    qSDHCP exactly (B drops out); Gamma2 = Delta2 = 0 is the hard-collision profile of rate
+    nu_VC - eta C0 acting on C0~ (B = 0 there, see ``_htp_b_term``). Outside the domain
+    (eta >= 1, or qsdhcp's undefined continuation) the value is NaN, never a wrong number.
+    """
+    arrs = np.broadcast_arrays(
+        *(
+            np.asarray(x, dtype=float)
+            for x in (
+                nu_hz,
+                nu0_hz,
+                doppler_hwhm_hz,
+                gamma0_hz,
+                gamma2_hz,
+                delta0_hz,
+                delta2_hz,
+                nu_vc_hz,
+                eta,
+            )
+        )
+    )
+    shape = arrs[0].shape
+    nu, nu0, gd, g0, g2, d0, d2, nvc, et = (np.ravel(x) for x in arrs)
+    _check_doppler(gd)
+    cte = _SQRT_LN2 / gd  # 1/Hz
+    c0 = g0 + 1j * d0  # Hz
+    c2 = g2 + 1j * d2
+    c0t = (1.0 - et) * (c0 - 1.5 * c2) + nvc
+    c2t = (1.0 - et) * c2
+    z0 = cte * (c0t - 1j * (nu - nu0))
+    kappa = cte * c2t
+    # the same continuation domain as qsdhcp, on the effective Gamma2~ = (1 - eta) Gamma2
+    # and eta < 1 (at eta = 1 every velocity change dephases and eta/(1 - eta) diverges)
+    inside = ~((c2t.real < 0) & ((c2t.imag != 0) | (1.0 + 4.0 * cte * kappa.real * c0t.real <= 0)))
+    inside &= et < 1.0
+    a = np.full_like(z0, np.nan)
+    bk = np.full_like(z0, np.nan)
+    a[inside] = cte[inside] * _speed_averaged(z0[inside], kappa[inside])  # A, 1/Hz
+    bk[inside] = _htp_b_term(z0[inside], kappa[inside])  # C2~ B, dimensionless
+    with np.errstate(invalid="ignore", divide="ignore"):
+        denom = 1.0 - (nvc - et * (c0 - 1.5 * c2)) * a + et / (1.0 - et) * bk
+        g = a / (np.pi * denom)
+    return g.reshape(shape)
+
+
 def gaussian(nu_hz, nu0_hz, doppler_hwhm_hz, delta0_hz=0.0):
     """Complex Gaussian (Doppler) profile, 1/Hz, centred at nu0 + delta0 (all in Hz).
 
@@ -304,6 +433,8 @@ def hard_collision(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, delta0_hz=0.0, nu_
 
 
 SHAPE_PARAMETERS = ("gamma0_hz", "gamma2_hz", "delta0_hz", "delta2_hz", "nu_vc_hz")
+# the HTP adds the dimensionless correlation parameter eta to the qSDHCP's rates
+HTP_PARAMETERS = (*SHAPE_PARAMETERS, "eta")
 
 
 @dataclass(frozen=True)
@@ -342,6 +473,20 @@ def _call_qsdhcp(nu, nu0, gd, p):
     )
 
 
+def _call_htp(nu, nu0, gd, p):
+    return htp(
+        nu,
+        nu0,
+        gd,
+        p["gamma0_hz"],
+        p["gamma2_hz"],
+        p["delta0_hz"],
+        p["delta2_hz"],
+        p["nu_vc_hz"],
+        p["eta"],
+    )
+
+
 PROFILES: dict[str, ProfileSpec] = {
     "gaussian": ProfileSpec("gaussian", ("delta0_hz",), True, _call_gaussian),
     "lorentzian": ProfileSpec("lorentzian", ("gamma0_hz", "delta0_hz"), False, _call_lorentzian),
@@ -351,24 +496,25 @@ PROFILES: dict[str, ProfileSpec] = {
     ),
     "rautian": ProfileSpec("rautian", ("gamma0_hz", "delta0_hz", "nu_vc_hz"), True, _call_rautian),
     "qsdhcp": ProfileSpec("qsdhcp", SHAPE_PARAMETERS, True, _call_qsdhcp),
+    "htp": ProfileSpec("htp", HTP_PARAMETERS, True, _call_htp),
 }
 
 
 def profile(name, nu_hz, nu0_hz, doppler_hwhm_hz, **shape):
     """Evaluate the named profile (complex, 1/Hz) at nu_hz; all inputs in Hz.
 
-    shape: any of SHAPE_PARAMETERS (HWHM, shifts, rates in Hz). A parameter the profile does
-    not use must be absent or zero (ValueError naming it otherwise), so a fit cannot silently
-    drop physics. doppler_hwhm_hz is ignored by the Lorentzian.
+    shape: any of HTP_PARAMETERS (HWHM, shifts, rates in Hz; eta dimensionless). A parameter
+    the profile does not use must be absent or zero (ValueError naming it otherwise), so a fit
+    cannot silently drop physics. doppler_hwhm_hz is ignored by the Lorentzian.
     """
     try:
         spec = PROFILES[name]
     except KeyError:
         raise ValueError(f"unknown profile {name!r}; known: {sorted(PROFILES)}") from None
-    params = dict.fromkeys(SHAPE_PARAMETERS, 0.0)
+    params = dict.fromkeys(HTP_PARAMETERS, 0.0)
     for key, value in shape.items():
         if key not in params:
-            raise ValueError(f"unknown shape parameter {key!r}; known: {SHAPE_PARAMETERS}")
+            raise ValueError(f"unknown shape parameter {key!r}; known: {HTP_PARAMETERS}")
         if key not in spec.parameters and np.any(np.asarray(value) != 0):
             raise ValueError(f"profile {name!r} does not use {key!r}, which must be 0 or absent")
         params[key] = value

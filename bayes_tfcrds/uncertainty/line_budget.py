@@ -15,7 +15,8 @@ Pipeline (each step a function of the bundle, the options and the seed):
    A_ref: emcee on the CMDS shifts.
 4. **Budget** (GUM, JCGM 100): ring-down noise, the beat-note posterior of H (one row: all its
    parameters through H(f)), each refined H parameter (correlated with the noise through the
-   shared records), the t_cut choice and the line-shape model choice for u(A); pressure,
+   shared records), the t_cut choice and the line-shape model (candidate profiles weighted by
+   their predictive evidence, :mod:`~bayes_tfcrds.uncertainty.line_shape_models`); pressure,
    temperature and mole fraction for the line intensity S at T_ref = 296 K (from S(T) = A/N at
    the sample's T through Q(T), E'' and stimulated emission); the CMDS reference for A/A_ref
    and E_n. Every row carries its degrees of freedom (Type A: n_points - n_params of its fit;
@@ -61,6 +62,12 @@ from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.output.progress import StageClock
 from bayes_tfcrds.physics.linedata import load_line
 from bayes_tfcrds.uncertainty.instrument import cmds_type_b, instrument_rows
+from bayes_tfcrds.uncertainty.line_shape_models import (
+    DEFAULT_CANDIDATES,
+    ModelAverage,
+    average_candidates,
+    fit_candidates,
+)
 from bayes_tfcrds.uncertainty.monte_carlo import (
     BudgetMonteCarlo,
     add_to_summary,
@@ -111,7 +118,7 @@ class BudgetOptions:
     t_cut_s: float = 4e-6
     t_cuts_s: tuple = DEFAULT_T_CUTS
     profile: str = "qsdhcp"
-    alt_profile: str = "sdvp"
+    shape_candidates: tuple = DEFAULT_CANDIDATES  # labels of line_shape_models.CANDIDATES
     refine_free: tuple = ("f_c_hz",)
     n_refine_points: int = 6
     posterior: str = "mcmc"  # or "laplace": Gaussian posteriors from the least-squares fits
@@ -267,7 +274,10 @@ class _Inputs:
 
 @dataclass(frozen=True)
 class _DecayTimes:
-    """Step 2: decay times at every t_cut, A per t_cut (Hz/m), the line fits at the chosen one."""
+    """Step 2: decay times at every t_cut, A per t_cut (Hz/m), the line fits at the chosen one.
+
+    ``shapes``: the candidate profiles' fits to that spectrum, weighted (the model average).
+    """
 
     fits: object
     t_cuts: np.ndarray
@@ -275,7 +285,7 @@ class _DecayTimes:
     area_by_tcut: dict
     spec: object
     lsq: object
-    alt: object
+    shapes: ModelAverage
 
 
 @dataclass(frozen=True)
@@ -369,7 +379,7 @@ def claim_chains(outdir, fingerprint: dict) -> None:
 
 
 def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
-    """Check the inputs, spawn the four random streams, place the chain files.
+    """Check the inputs, spawn the five random streams, place the chain files.
 
     Refuses what cannot work before minutes of sampling (t_cut outside the record, CMDS
     elsewhere).
@@ -377,8 +387,8 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     check_t_cuts(config, (options.t_cut_s, *options.t_cuts_s))
     check_overlap(config)
     config, noise, beat = account_for_noise_colour(config, options.window)
-    # the Monte Carlo stream comes last: the first four are those of spawn(4)
-    streams = dict(zip(("h", "line", "cmds", "pair", "mc"), rng.spawn(5)))
+    # appended in turn: spawning more children leaves the earlier streams as they were
+    streams = dict(zip(("h", "line", "cmds", "pair", "mc", "shapes"), rng.spawn(6)))
     backend = None
     if outdir is not None:  # made and claimed by run_budget, under the folder's lock
         backend = str(Path(outdir) / "chains.h5")
@@ -400,7 +410,7 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     """Step 2.
 
     Decay times at all t_cuts with H*, a least-squares line fit per t_cut (for the t_cut row) and,
-    at the chosen t_cut, the profile and its alternative.
+    at the chosen t_cut, the profile and the candidate profiles (model average).
     """
     options, gd, nu_ref = inp.options, inp.gd, inp.nu_ref
     t_cuts = np.asarray(sorted(set(options.t_cuts_s) | {options.t_cut_s}), float)
@@ -414,8 +424,11 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     line_fits = [fit_line([sp], options.profile, gd, nu_ref) for sp in spectra]
     area_by_tcut = {float(tc): lf.line_area for tc, lf in zip(t_cuts, line_fits)}
     spec, lsq = spectra[j0], line_fits[j0]
-    alt = fit_line([spec], options.alt_profile, gd, nu_ref)
-    return _DecayTimes(fits, t_cuts, j0, area_by_tcut, spec, lsq, alt)
+    shapes = average_candidates(
+        fit_candidates(spec, gd, nu_ref, options.shape_candidates, primary=lsq),
+        inp.streams["shapes"],
+    )
+    return _DecayTimes(fits, t_cuts, j0, area_by_tcut, spec, lsq, shapes)
 
 
 def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
@@ -748,22 +761,25 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
             f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us; dof 8: u judged reliable to 25 %",
         )
     )
+    shapes = dt.shapes
+    weights = ", ".join(f"{k} {w:.2g}" for k, w in shapes.weights.items())
     comps.append(
         Component(
-            f"line-shape model ({options.profile} vs {options.alt_profile})",
+            f"line-shape model (average of {len(shapes.candidates)} profiles)",
             None,
-            float(abs(dt.lsq.line_area - dt.alt.line_area) / np.sqrt(12)),
+            shapes.u_between,
             1.0,
             "Hz/m",
             dof=dof_from_relative_u(REL_U_ONE_DIFFERENCE),
-            note="Type B: rectangular over the difference of the two profiles' A; dof 2: u judged "
-            "reliable to 50 %",
+            note="between-model sd sqrt(sum w_k (A_k - A_bar)^2), pseudo-BMA+ (Akaike) weights "
+            f"of the profiles fitted to the spectrum: {weights}; dof 2: u judged reliable to 50 %",
         )
     )
     comps += [row.component for row in instrument]
     return Budget(
         quantity="line area A",
-        value=float(np.mean(a_total)),
+        # the model-averaged A: the profile's posterior mean moved by A_bar - A(profile)
+        value=float(np.mean(a_total) + shapes.line_area - dt.lsq.line_area),
         unit="Hz/m",
         components=tuple(comps),
         correlations=corr,
@@ -934,6 +950,10 @@ def _summary(
             }
             for c in budget_a.components
         ],
+        "line_shape_models": {
+            **dt.shapes.to_dict(),
+            "line_area_of_profile": float(line_area_to_cm2(dt.lsq.line_area)),
+        },
         "a_by_t_cut": {
             f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in dt.area_by_tcut.items()
         },

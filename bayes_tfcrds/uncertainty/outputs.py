@@ -224,6 +224,8 @@ def write_outputs(
         md += "\n\n" + noise_markdown(result.summary["noise"])
     if result.summary.get("instrument"):
         md += "\n\n" + instrument_markdown(result.summary["instrument"])
+    if result.summary.get("line_shape_models"):
+        md += "\n\n" + line_shape_markdown(result.summary["line_shape_models"])
     md += "\n\n" + priors_markdown(result.summary.get("priors") or {})
     atomic_write_text(out / "budget.md", md + "\n")
     mark = f"# {banner}\n" if banner else ""
@@ -643,4 +645,29 @@ def priors_markdown(priors: dict) -> str:
     rows = ["## Priors", "", "| " + " | ".join(PRIOR_COLUMNS) + " |", "|---" * 7 + "|"]
     rows += ["| " + " | ".join(c.replace("|", "\\|") for c in r) + " |" for r in prior_rows(priors)]
     rows += ["", "log-uniform priors are sampled as the logarithm of the parameter."]
+    return "\n".join(rows)
+
+
+def line_shape_markdown(models: dict) -> str:
+    """The line-shape model section of budget.md: each candidate's fit, AIC, weight and A."""
+    rows = [
+        "## Line-shape model: candidate profiles",
+        "",
+        "| candidate | free shape parameters | chi2_red | AIC - AIC_min | weight | A (cm^-2) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for c in models["candidates"]:
+        fit = (
+            "fit failed | - | 0 | -"  # the reason is in budget.json
+            if c["failed"]
+            else f"{c['chi2_red']:.3g} | {c['delta_aic']:.3g} | {c['weight']:.3g} | "
+            f"{c['line_area']:.7g}"
+        )
+        rows.append(f"| {c['label']} | {', '.join(c['shape_free'])} | {fit} |")
+    rows += [
+        "",
+        f"Model-averaged A = {models['line_area']:.7g} cm^-2, between-model sd "
+        f"{models['u_between']:.2g} cm^-2 ({models['method']}); A of the budget's profile "
+        f"{models['line_area_of_profile']:.7g} cm^-2.",
+    ]
     return "\n".join(rows)

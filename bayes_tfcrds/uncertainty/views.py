@@ -13,6 +13,7 @@ import numpy as np
 
 from bayes_tfcrds.core.constants import line_area_to_cm2
 from bayes_tfcrds.output.notebook import fmt, html_table, new_figure, text_table
+from bayes_tfcrds.output.plotting import house_style
 
 COMPONENT_HEADER = ("component of u_c(A)", "u (cm^-2)", "share of u_c^2 (%)")
 
@@ -102,6 +103,7 @@ def budget_dict(result) -> dict:
     return _strict(out)
 
 
+@house_style
 def plot_budget(result, ax=None):
     """Horizontal bars: each component's share of u_c^2(A) (%), its u in cm^-2 beside it.
 

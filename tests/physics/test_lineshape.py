@@ -624,7 +624,7 @@ def test_symmetry_without_shifts(log_r0, f2, rvc, log_det):
 
 # ------------------------------------------------------------------- dispatcher
 def test_profiles_table_and_validation():
-    assert set(PROFILES) == {"gaussian", "lorentzian", "voigt", "sdvp", "rautian", "qsdhcp"}
+    assert set(PROFILES) == {"gaussian", "lorentzian", "voigt", "sdvp", "rautian", "qsdhcp", "htp"}
     assert PROFILES["qsdhcp"].parameters == ls.SHAPE_PARAMETERS
     assert "nu_vc_hz" not in PROFILES["sdvp"].parameters
     assert "gamma2_hz" not in PROFILES["rautian"].parameters

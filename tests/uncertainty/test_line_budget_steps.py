@@ -145,9 +145,8 @@ def test_inputs_step_refuses_a_t_cut_beyond_the_record():
             bundle, cfg, lb.BudgetOptions(t_cut_s=late), np.random.default_rng(0), None, False
         )
     inp = lb._inputs(bundle, cfg, lb.BudgetOptions(), np.random.default_rng(0), None, False)
-    assert (
-        set(inp.streams) == {"h", "line", "cmds", "pair", "mc"} and inp.chain_file("line") is None
-    )
+    assert set(inp.streams) == {"h", "line", "cmds", "pair", "mc", "shapes"}
+    assert inp.chain_file("line") is None
     assert inp.gd > 0  # the Doppler HWHM (Hz) from the sample
 
 
