@@ -665,9 +665,11 @@ def _coverage_table(sums: dict, n: int, post: str, rep) -> None:
         caption="Coverage +/- binomial standard error sqrt(c(1-c)/n). Pull = (truth - "
         "estimate)/u; the mean and sd are dominated by any gross outlier (listed below), the "
         "median and MAD are not. The first four rows use the posterior (ring-down noise and H, "
-        "the budget's statistical u); the u_c rows use the full GUM budget, whose Type B rows "
-        "(t_cut choice, qSDHCP vs SDVP) describe choices the simulation does not vary (its truth "
-        "is the fitted qSDHCP), so they cover more than nominal by design.",
+        "the budget's statistical u); the u_c rows use the full GUM budget: its t_cut row and its "
+        "data-sized rows (line-shape model average, H model form, instrument rows) describe "
+        "choices and effects the simulation does not vary (its truth is the fitted qSDHCP, its "
+        "detector linear), so they may cover more than nominal; S also carries the gauges' "
+        "Type B rows, whose errors the simulation does draw.",
     )
     _coverage_figure(rep, sums)
     _rank_figure(rep, {k: sums[k] for k in main_keys}, n, f"Rank histograms ({post} posterior)")
