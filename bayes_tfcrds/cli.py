@@ -421,6 +421,7 @@ def cmd_budget(args) -> int:
     from bayes_tfcrds.fit.line_analysis import LineFitError
     from bayes_tfcrds.fit.refine import tension_lines
     from bayes_tfcrds.uncertainty.line_budget import run_budget
+    from bayes_tfcrds.uncertainty.monte_carlo import edge_units
     from bayes_tfcrds.uncertainty.outputs import (
         failed_banner,
         posterior_line,
@@ -466,7 +467,7 @@ def cmd_budget(args) -> int:
             "u(tau) and every ring-down likelihood use noise_v sqrt(kappa) (budget.md, "
             "'Ring-down noise')"
         )
-    print(res.budget_a.to_markdown())
+    _result(edge_units(res.budget_a).to_markdown())  # A in cm^-2, as in budget.json/.md
     if res.refined is not None:
         for line in tension_lines(res.refined):
             _say(f"H refinement: {line}")

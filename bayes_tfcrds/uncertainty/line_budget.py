@@ -758,7 +758,7 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
             "Hz/m",
             dof=dof_from_relative_u(REL_U_SPREAD),
             note="Type B: rectangular over the A(t_cut) range, t_cut = "
-            f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} us; dof 8: u judged reliable to 25 %",
+            f"{', '.join(f'{t * 1e6:g}' for t in dt.t_cuts)} µs; dof 8: u judged reliable to 25 %",
         )
     )
     shapes = dt.shapes
