@@ -56,7 +56,18 @@ def run_study(path, outdir, progress: bool = False, pool=None, seed: int | None 
     if study.description:
         rep.add_text(study.description)
     runner = _runner(study.kind)
-    if study.kind == "coverage":
+    if study.kind == "tcut" and study.n_seeds > 1:
+        # many campaigns, each simulated inside its own task; seed 0's bundle is kept
+        from bayes_tfcrds.studies.tcut_seeds import SEED_SCHEME, tcut_seeds_study
+
+        numbers = tcut_seeds_study(study, rep, out, progress=progress, pool=pool)
+        seed0 = out / "campaign.h5"
+        rep.provenance = provenance(
+            seeds={"study": study.seed, "campaign i": SEED_SCHEME.replace("seed", str(study.seed))},
+            inputs=[seed0] if seed0.exists() else [],
+            study_text=study.text,
+        )
+    elif study.kind == "coverage":
         # many campaigns, each simulated inside its own task: no single bundle
         numbers = runner(study, rep, out, progress=progress, pool=pool)
         rep.provenance = provenance(

@@ -10,6 +10,7 @@ Study file layout (every key optional unless marked)::
     title = "..."                 # shown on the report
     kind = "tcut"                 # required: tcut | figures | window_history | budgets | coverage
     seed = 7                      # the simulation and sampling seed
+    seeds = 20                    # tcut: independent simulated campaigns (default 1)
 
     [campaign]                    # simulate (default) ...
     presets = ["letter-D1", "letter-D2"]
@@ -44,7 +45,14 @@ from dataclasses import dataclass
 from pathlib import Path
 
 SCHEMA = {
-    "study": {"name": str, "title": str, "description": str, "kind": str, "seed": int},
+    "study": {
+        "name": str,
+        "title": str,
+        "description": str,
+        "kind": str,
+        "seed": int,
+        "seeds": int,
+    },
     "campaign": {
         "presets": [str],
         "points": int,
@@ -99,6 +107,7 @@ class Study:
     posterior: str = "mcmc"
     mcmc_campaigns: int = 0
     shape_bounds: str = "free"
+    n_seeds: int = 1
 
 
 def _check_type(where, value, kind):
@@ -241,6 +250,13 @@ def _check_analysis(path: Path, st: dict, cp: dict, an: dict) -> tuple:
         raise StudyError(f"{path}: campaign.presets is empty; leave it out for the default")
     if "mcmc_steps" in an and not 1 <= an["mcmc_steps"] <= 10**7:
         raise StudyError(f"{path}: analysis.mcmc_steps must be in [1, 1e7], got {an['mcmc_steps']}")
+    if st.get("seeds", 1) != 1 and (st["kind"] != "tcut" or "bundle" in cp):
+        raise StudyError(
+            f"{path}: study.seeds repeats a simulated tcut study over independent campaigns; "
+            "leave it out for other kinds and for a campaign.bundle"
+        )
+    if not 1 <= st.get("seeds", 1) <= 10000:
+        raise StudyError(f"{path}: study.seeds must be in [1, 10000], got {st['seeds']}")
     if "bundle" in cp and ("presets" in cp or "effects" in cp):
         raise StudyError(f"{path}: campaign.bundle excludes campaign.presets and campaign.effects")
     return t_cuts
@@ -281,4 +297,5 @@ def load_study(path) -> Study:
         posterior=an.get("posterior", "mcmc"),
         mcmc_campaigns=an.get("mcmc_campaigns", 0),
         shape_bounds=an.get("shape_bounds", "free"),
+        n_seeds=st.get("seeds", 1),
     )

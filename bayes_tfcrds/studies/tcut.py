@@ -243,11 +243,11 @@ def study_tcut(study, bundle, truth, rep, out, progress=False, pool=None):
     rep.add_table(
         [
             "config",
-            "CRDS bias (%)",
-            "TF-CRDS bias (%)",
-            "letter TF-CRDS bias (%)",
-            "reduction factor",
-            "letter factor",
+            "CRDS |A/A_ref - 1| (%)",
+            "TF-CRDS |A/A_ref - 1| (%)",
+            "letter TF-CRDS |A/A_ref - 1| (%)",
+            "reduction factor (against CMDS)",
+            "letter factor (against its CMDS)",
         ],
         table,
     )
