@@ -661,7 +661,8 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, forms, beat_2, refined, n_r_sam
     w = 1.0 - forms.weight_free if n_r_sampled else forms.weight_free
     a_alt = None
     if alt is not None and w > FORM_WEIGHT_MIN:
-        free = tuple(refined.free) if refined is not None else ()
+        # the same update, of the parameters that form has (n_r stays at 2 in the n_r = 2 form)
+        free = tuple(n for n in refined.free if n in alt.free) if refined is not None else ()
         rd = inp.config.ringdowns
         h_alt = alt.params
         if free:
