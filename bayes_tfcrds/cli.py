@@ -471,12 +471,19 @@ def cmd_budget(args) -> int:
     if res.refined is not None:
         for line in tension_lines(res.refined):
             _say(f"H refinement: {line}")
-    form = (res.summary.get("transfer_function") or {}).get("model_form")
+    tfs = res.summary.get("transfer_function") or {}
+    form = tfs.get("model_form")
     if form and form["asks_for_free_order"]:
+        kept = (
+            "the budget samples n_r (posterior {mean:.3f} +/- {sd:.3f}) and carries the n_r = 2 "
+            "alternative".format(**tfs["n_r_posterior"])
+            if tfs.get("n_r_sampled")
+            else "the budget keeps n_r = 2 (the fit lies outside the causal n_r < 2) and carries "
+            "the difference"
+        )
         _say(
             f"finding: the beat note asks for a fractional order n_r = {form['n_r_free_fit']:.3f} "
-            f"(BIC weight {form['weight_n_r_free']:.3g}); the budget keeps n_r = 2 and carries the "
-            "difference in A as the 'H model form' row"
+            f"(BIC weight {form['weight_n_r_free']:.3g}); {kept} in A as the 'H model form' row"
         )
     for name, detail in (res.summary.get("instrument") or {}).items():
         if detail.get("finding"):

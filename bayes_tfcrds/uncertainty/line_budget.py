@@ -50,6 +50,7 @@ from bayes_tfcrds.fit.h_calibration import (
     DEFAULT_T_CUTS,
     AnalysisError,
     account_for_noise_colour,
+    beat_note_fit,
     h_model_forms,
     refine_on_records,
 )
@@ -58,6 +59,7 @@ from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_
 from bayes_tfcrds.fit.refine import HPrior
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
+from bayes_tfcrds.inference.posteriors import H_PRIOR
 from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.output.progress import StageClock
 from bayes_tfcrds.physics.linedata import load_line
@@ -92,7 +94,7 @@ from bayes_tfcrds.uncertainty.propagate import (
 
 log = logging.getLogger(__name__)
 
-H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1"}
+H_UNITS = {"f_c_hz": "Hz", "a_r": "1", "f_r_hz": "Hz", "gamma_r": "1", "n_r": "1"}
 # judged relative uncertainty of the Type B u's (GUM G.4.2, dof = 1/2 (du/u)^-2): a width from the
 # spread of a few alternatives (t_cut) is known to about 25 % (8 dof); a width set by a single
 # difference or weight (line-shape model, H model form) to about 50 % (2 dof); u(p), u(T) stated
@@ -126,6 +128,7 @@ class BudgetOptions:
     n_steps: int = 2500
     max_steps: int = 24000
     n_h_draws: int = 1000
+    free_order: bool = True  # sample n_r when the beat note asks for a free order (BIC weight)
 
     def __post_init__(self):
         if self.posterior not in POSTERIORS:
@@ -450,11 +453,11 @@ def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
     return runs["line"].flat()
 
 
-def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star) -> _HSensitivity:
+def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, names=BEAT_FREE) -> _HSensitivity:
     """Step 4: the sensitivity of A to H.
 
     dA/dH(f) through every tau (implicit-function derivatives in the function H, then the line
-    fit's gain), and dA/dtheta_H from the same chain rule with dH/dtheta.
+    fit's gain), and dA/dtheta_H from the same chain rule with dH/dtheta (theta: ``names``).
     """
     options, rd, fits, j0 = inp.options, inp.config.ringdowns, dt.fits, dt.j0
     ia = dt.lsq.names.index("line_area")
@@ -473,7 +476,7 @@ def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star) -> _HSensitivity:
         noise_v=rd.fit_noise_v,
         rows_of=good,
     )
-    s_tau = tau_sensitivities(rd.time_s, rd.signal_v, names=BEAT_FREE, **rows)
+    s_tau = tau_sensitivities(rd.time_s, rd.signal_v, names=names, **rows)
     k_gain = line_gain(dt.lsq)[ia]  # dA/d(1/(c tau))
     dalpha_dtau = -1.0 / (C * fits.tau_s[good, j0] ** 2)
     grad_a = (k_gain * dalpha_dtau) @ s_tau  # dA/dtheta_H (Hz/m per unit)
@@ -481,26 +484,26 @@ def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star) -> _HSensitivity:
     return _HSensitivity(good, k_gain, dalpha_dtau, grad_a, kernel)
 
 
-def h_shifts(kernels: TauKernels, draws, h_star, n_rows: int, chunk: int = 100) -> np.ndarray:
-    """First-order shifts (n_draws, n_rows) that H draws (natural, BEAT_FREE order) cause.
+def h_shifts(
+    kernels: TauKernels, draws, h_star, n_rows: int, chunk: int = 100, names=BEAT_FREE
+) -> np.ndarray:
+    """First-order shifts (n_draws, n_rows) that H draws (natural, columns ``names``) cause.
 
     Through each draw's H(f) (function space), in chunks of draws to bound memory.
     """
     draws = np.atleast_2d(draws)
     out = np.zeros((draws.shape[0], n_rows))
     for i in range(0, draws.shape[0], chunk):
-        out[i : i + chunk] = kernels.shifts(
-            h_change(draws[i : i + chunk], BEAT_FREE, h_star), n_rows
-        )
+        out[i : i + chunk] = kernels.shifts(h_change(draws[i : i + chunk], names, h_star), n_rows)
     return out
 
 
 def _h_split(h_star, h_parts: dict) -> _HSplit:
     """The decomposition of an H draw into beat-note and refinement parts (see :class:`_HSplit`)."""
-    others, refd = h_parts["others"], h_parts["refined"]
-    io = [BEAT_FREE.index(n) for n in others]
-    ir = [BEAT_FREE.index(n) for n in refd]
-    return _HSplit(others, refd, io, ir, h_star.as_vector(BEAT_FREE))
+    others, refd, names = h_parts["others"], h_parts["refined"], h_parts["names"]
+    io = [names.index(n) for n in others]
+    ir = [names.index(n) for n in refd]
+    return _HSplit(others, refd, io, ir, h_star.as_vector(names))
 
 
 def _noise_refinement_correlation(
@@ -578,7 +581,8 @@ def _h_shifted_areas(inp, dt, sens, split, h_star, refined, h_parts, a_noise, u_
     refinement part correlated with the noise. Returns (A draws, noise-refinement correlations,
     beat-note shifts).
     """
-    d_beat = h_shifts(sens.area_kernel, h_parts["beat_draws"], h_star, 1)[:, 0]
+    d_beat = h_shifts(sens.area_kernel, h_parts["beat_draws"], h_star, 1, names=h_parts["names"])
+    d_beat = d_beat[:, 0]
     d_ref = np.zeros(a_noise.size)
     r_noise_ref = {}
     if split.ir:
@@ -676,19 +680,40 @@ def _h_components(
 FORM_WEIGHT_MIN = 1e-4  # BIC weight below which the other H form is not even evaluated
 
 
-def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
+def _h_forms(inp: _Inputs):
+    """Step 1a: Eq. 2 with n_r = 2 and with n_r free on the beat note, and the form to sample.
+
+    n_r is sampled (the beat-note posterior over BEAT_FREE + n_r, started from the n_r-free fit)
+    when the options allow it, the beat note asks for a free order (BIC weight > 1/2) and that
+    fit lies inside the posterior's causal support (H_PRIOR: n_r < 2); else n_r = 2, as a
+    rational chain. Returns (HModelForms, the n_r = 2 fit, the fit whose form is sampled).
+    """
+    beat = inp.beat
+    if beat is None:
+        beat = beat_note_fit(inp.config, free=BEAT_FREE, window=inp.options.window)
+    forms = h_model_forms(inp.config, beat)
+    lo, hi = H_PRIOR["n_r"]
+    free = (
+        inp.options.free_order and forms.asks_for_free_order and lo < forms.free_fit.params.n_r < hi
+    )
+    return forms, beat, forms.free_fit if free else beat
+
+
+def _h_model_form(inp: _Inputs, dt: _DecayTimes, forms, beat_2, refined, n_r_sampled: bool):
     """Step 6b: the H model-form row (Eq. 2 with n_r = 2 against n_r free), sized by the data.
 
-    The n_r-free form's A (its beat-note fit, the same ring-down update, decay times and line fit)
-    enters with its BIC weight w: u = sqrt(w) |A_free - A|, the between-model sd about the form
-    used. A form the beat note rejects (w -> 0) contributes nothing. Returns (Component, record).
+    The form not sampled (its beat-note fit ``beat_2`` or ``forms.free_fit``, the same ring-down
+    update, decay times and line fit) enters with its BIC weight w: u = sqrt(w) |A_other - A|, the
+    between-model sd about the form used. A form the beat note rejects (w -> 0) contributes
+    nothing. Returns (Component, record).
     """
     options = inp.options
-    forms = h_model_forms(inp.config, beat)
-    a_free = None
-    if forms.free_fit is not None and forms.weight_free > FORM_WEIGHT_MIN:
-        alt = forms.free_fit
-        free = tuple(refined.free) if refined is not None else ()
+    alt = beat_2 if n_r_sampled else forms.free_fit
+    w = 1.0 - forms.weight_free if n_r_sampled else forms.weight_free
+    a_alt = None
+    if alt is not None and w > FORM_WEIGHT_MIN:
+        # the same update, of the parameters that form has (n_r stays at 2 in the n_r = 2 form)
+        free = tuple(n for n in refined.free if n in alt.free) if refined is not None else ()
         rd = inp.config.ringdowns
         h_alt = alt.params
         if free:
@@ -703,17 +728,20 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
             )[0].params
         f = fit_ringdowns(rd, [options.t_cut_s], "tf-crds", h_alt, options.window)
         spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
-        a_free = fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area
-    w = forms.weight_free
-    u = 0.0 if a_free is None else float(np.sqrt(w) * abs(a_free - dt.lsq.line_area))
+        a_alt = fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area
+    u = 0.0 if a_alt is None else float(np.sqrt(w) * abs(a_alt - dt.lsq.line_area))
+    a_used = dt.lsq.line_area
     record = {
         "bic_n_r_2": forms.bic_fixed,
         "bic_n_r_free": forms.bic_free,
-        "weight_n_r_free": w,
+        "weight_n_r_free": forms.weight_free,
         "n_r_free_fit": None if forms.free_fit is None else forms.free_fit.params.n_r,
-        "a_n_r_free_hz_per_m": a_free,
+        "a_n_r_free_hz_per_m": a_used if n_r_sampled else a_alt,
+        "a_n_r_2_hz_per_m": a_alt if n_r_sampled else a_used,
         "asks_for_free_order": forms.asks_for_free_order,
+        "form_sampled": "n_r free" if n_r_sampled else "n_r = 2",
     }
+    used, other = ("n_r free", "n_r = 2") if n_r_sampled else ("n_r = 2", "n_r free")
     comp = Component(
         "H model form (Eq. 2: n_r = 2 vs n_r free)",
         None,
@@ -721,8 +749,8 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, beat, refined):
         1.0,
         "Hz/m",
         dof=dof_from_relative_u(REL_U_ONE_DIFFERENCE),
-        note=f"from the data: BIC weight of n_r free on the beat note w = {w:.3g}; "
-        "u = sqrt(w) |A(n_r free) - A(n_r = 2)|; dof 2: u judged reliable to 50 % (GUM G.4.2)",
+        note=f"from the data: BIC weight of {other} on the beat note w = {w:.3g}; "
+        f"u = sqrt(w) |A({other}) - A({used})|; dof 2: u judged reliable to 50 % (GUM G.4.2)",
     )
     return comp, record
 
@@ -994,6 +1022,17 @@ def _summary(
     return summary
 
 
+def _n_r_record(h_draws, names) -> dict:
+    """Whether the order n_r was sampled and, if so, its posterior mean and sd (budget.json)."""
+    if "n_r" not in names:
+        return {"n_r_sampled": False, "n_r_posterior": None}
+    n_r = np.asarray(h_draws)[:, list(names).index("n_r")]
+    return {
+        "n_r_sampled": True,
+        "n_r_posterior": {"mean": float(np.mean(n_r)), "sd": float(np.std(n_r))},
+    }
+
+
 def _refinement_summary(refined) -> dict:
     """How the ring-downs updated the beat note: per parameter values, u, shift and tension z."""
     c2, dof, p = refined.tension_chi2
@@ -1084,7 +1123,7 @@ def _apply_gates(
         summary["status"] = "ok"
 
 
-def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> list:
+def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws, names=BEAT_FREE) -> list:
     """Step 11.
 
     Decay-time posteriors at every point and t_cut: the mean and sd over the H draws (each through
@@ -1107,7 +1146,7 @@ def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws) -> list:
                 noise_v=rd.fit_noise_v,
                 rows_of=rows_j,
             )
-            shifts = h_shifts(kern, h_draws, h_star, rows_j.size)
+            shifts = h_shifts(kern, h_draws, h_star, rows_j.size, names=names)
             u_h, mean_h = np.std(shifts, axis=0), np.mean(shifts, axis=0)
         else:
             mean_h = np.zeros(rows_j.size)
@@ -1181,10 +1220,13 @@ def _budget(inp: _Inputs) -> BudgetResult:
     clock = StageClock(9 if tf else 6, f"budget {config.name} ({options.posterior})")
     runs = {}
     h_star = h_draws = refined = h_parts = beat = None
+    names = BEAT_FREE  # the sampled H parameters (n_r too when the beat note asks for it)
     if tf:  # 1. H
+        forms, beat_2, beat = _h_forms(inp)
         beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
-            config, options, inp.streams["h"], inp.chain_file("h"), inp.progress, inp.beat
+            config, options, inp.streams["h"], inp.chain_file("h"), inp.progress, beat
         )
+        names = h_parts["names"]
         if h_run is not None:
             runs["h"] = h_run
         clock.done("H posterior")
@@ -1196,12 +1238,12 @@ def _budget(inp: _Inputs) -> BudgetResult:
     u_dir = float(np.std(a_noise))
     sens_a, h_rows, d_h = {}, ([], {}), None
     if options.method == "tf-crds":  # 4-5. H into A
-        sens = _h_sensitivity(inp, dt, h_star)
+        sens = _h_sensitivity(inp, dt, h_star, names)
         split = _h_split(h_star, h_parts)
         a_total, r_noise_ref, d_beat = _h_shifted_areas(
             inp, dt, sens, split, h_star, refined, h_parts, a_noise, u_dir
         )
-        sens_a = dict(zip(BEAT_FREE, sens.grad_a))
+        sens_a = dict(zip(names, sens.grad_a))
         h_rows = _h_components(
             split,
             sens.grad_a,
@@ -1211,7 +1253,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
             "ring-down noise (line fit given H)",
             beat.dof,
         )
-        d_h = h_shifts(sens.area_kernel, h_draws, h_star, 1)[:, 0]
+        d_h = h_shifts(sens.area_kernel, h_draws, h_star, 1, names=names)[:, 0]
         clock.done("H into A")
     else:
         a_total = a_noise.copy()
@@ -1219,7 +1261,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
     clock.done("A_ref from CMDS")
     form = None
     if tf:  # 6b. the form of the H model
-        form_row, form = _h_model_form(inp, dt, beat, refined)
+        form_row, form = _h_model_form(inp, dt, forms, beat_2, refined, "n_r" in names)
         h_rows = (h_rows[0] + [form_row], h_rows[1])
         clock.done("H model form")
     instrument = instrument_rows(config, options, h_star, dt.spec, inp.gd, inp.nu_ref)  # 6c.
@@ -1242,6 +1284,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
         # the ring-downs may have asked for more parameters than the options named
         summary["transfer_function"]["refined"] = list(refined.free)
         summary["transfer_function"]["refined_asked"] = list(options.refine_free)
+        summary["transfer_function"].update(_n_r_record(h_draws, names))
     _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
     summary["priors"] = priors_summary(runs)
     clock.done("budgets")
@@ -1250,9 +1293,10 @@ def _budget(inp: _Inputs) -> BudgetResult:
         "a_noise": a_noise,
         "a_ref": a_ref,
         "h_draws": h_draws,
+        "h_names": names,  # the columns of h_draws
         "a_shift_h": d_h,  # first-order shift of A (Hz/m) that each H draw causes
     }
-    tau_table = _tau_table(inp, dt, h_star, h_draws)
+    tau_table = _tau_table(inp, dt, h_star, h_draws, names)
     clock.done("decay-time table")
     return BudgetResult(
         summary=summary,

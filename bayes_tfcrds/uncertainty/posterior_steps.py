@@ -142,9 +142,9 @@ class RingDownWeights:
         return bool(self.ess >= IS_ESS_MIN)
 
 
-def ring_down_weights(refined, beat_draws, n: int, rng) -> RingDownWeights:
-    """Weight ``beat_draws`` by the ring-down likelihood and resample ``n`` (systematic)."""
-    logw = ringdown_log_likelihood(refined, beat_draws, BEAT_FREE)
+def ring_down_weights(refined, beat_draws, n: int, rng, names=BEAT_FREE) -> RingDownWeights:
+    """Weight ``beat_draws`` (columns ``names``) by the ring-down likelihood; resample ``n``."""
+    logw = ringdown_log_likelihood(refined, beat_draws, names)
     logw = np.where(np.isfinite(logw), logw, -np.inf)
     w = np.exp(logw - np.max(logw))
     w /= w.sum()
@@ -157,19 +157,21 @@ def ring_down_weights(refined, beat_draws, n: int, rng) -> RingDownWeights:
 def _beat_posterior(config, options, beat=None):
     """The beat-note fit, its posterior (A_r branch fixed clear of 0), its modes, over-dispersed p0.
 
-    ``beat`` is the beat-note fit when already made (with BEAT_FREE, the options' window).
+    ``beat`` is the beat-note fit when already made (with BEAT_FREE, the options' window; or with
+    BEAT_FREE + n_r when the beat note asks for a free order): its ``free`` are sampled.
     Returns (fit, posterior, p0 function, the mode mixture or None when the fit found one mode).
     """
     if beat is None:
         beat = beat_note_fit(config, free=BEAT_FREE, window=options.window)
     tfd = config.transfer_function
+    names = tuple(beat.free)
     sd0 = np.sqrt(np.diag(beat.cov))
-    a_r, u_a_r = beat.params.a_r, sd0[BEAT_FREE.index("a_r")]
+    a_r, u_a_r = beat.params.a_r, sd0[names.index("a_r")]
     post = BeatNotePosterior(
         f_hz=np.asarray(tfd.f_hz),
         h_mag=np.asarray(tfd.h_mag),
         h_mag_u=np.asarray(tfd.h_mag_u),
-        free=BEAT_FREE,
+        free=names,
         fixed=beat.params,
         # the branch of A_r chosen by the ring-downs, where the posterior sits clear of A_r = 0
         a_r_sign=int(np.sign(a_r)) if abs(a_r) > SIGN_CLEARANCE * u_a_r else 0,
@@ -179,7 +181,7 @@ def _beat_posterior(config, options, beat=None):
         return beat, post, lambda r, n: mixture_starts(post, modes, r, n), modes
     x0 = post.to_sample(beat.params, beat.scale)
     # initial spread: the least-squares covariance, in sample space (log params: relative sd)
-    nat = np.append(beat.params.as_vector(BEAT_FREE), beat.scale)
+    nat = np.append(beat.params.as_vector(names), beat.scale)
     spread = np.where([p.is_log for p in post.priors], sd0 / np.abs(nat), sd0)
 
     def p0(r, n):
@@ -216,7 +218,7 @@ def beat_modes(post, beat) -> MixtureProposal:
         m = post.to_sample(fit.params, fit.scale)
         if not np.isfinite(post(m)[0]):
             continue  # the other A_r branch, or outside the support
-        nat = np.append(fit.params.as_vector(BEAT_FREE), fit.scale)
+        nat = np.append(fit.params.as_vector(post.free), fit.scale)
         jac = np.where(is_log, np.abs(nat), 1.0)
         cov = fit.cov / np.outer(jac, jac)
         sd = np.sqrt(np.maximum(np.diag(cov), 1e-300))
@@ -289,24 +291,25 @@ def h_prediction_units(gated) -> dict:
 
 
 def _pool(beat, post, run, rng, size: int) -> np.ndarray:
-    """``size`` beat-note posterior draws of BEAT_FREE (natural units).
+    """``size`` beat-note posterior draws of the sampled H parameters ``post.free`` (natural units).
 
     From the MCMC run (without replacement, at most all of it) or, with ``run`` None, from the
     Laplace approximation in the sampled parametrisation (log of the positive parameters: every
     draw physical).
     """
+    names = tuple(post.free)
     if run is None:
-        centre = beat.params.as_vector(BEAT_FREE)
-        jac = sample_jacobian(BEAT_FREE, centre)
+        centre = beat.params.as_vector(names)
+        jac = sample_jacobian(names, centre)
         cov_s = beat.param_cov / np.outer(jac, jac)
         phi = rng.multivariate_normal(
-            to_sample(BEAT_FREE, centre), 0.5 * (cov_s + cov_s.T), size=size, method="eigh"
+            to_sample(names, centre), 0.5 * (cov_s + cov_s.T), size=size, method="eigh"
         )
-        return from_sample(BEAT_FREE, phi.T).T
+        return from_sample(names, phi.T).T
     flat = run.flat()
     pick = rng.choice(flat.shape[0], size=min(size, flat.shape[0]), replace=False)
     nat_draws = post.to_params(flat[pick])
-    return np.column_stack([nat_draws[n] for n in BEAT_FREE])
+    return np.column_stack([nat_draws[n] for n in names])
 
 
 def _refinement(config, options, beat, free):
@@ -319,7 +322,7 @@ def _refinement(config, options, beat, free):
         options.t_cuts_s,
         options.n_refine_points,
         HPrior.from_beat(beat),
-        BEAT_FREE,
+        tuple(beat.free),
     )
 
 
@@ -331,15 +334,16 @@ def _joint_draws(beat, post, run, refined, options, rng):
     draws when the weights are uneven); then the refined parameters' conditional scatter. Returns
     (draws, the same with the conditional mean, weights).
     """
-    others = tuple(n for n in BEAT_FREE if n not in refined.free)
-    io = [BEAT_FREE.index(n) for n in others]
-    ir = [BEAT_FREE.index(n) for n in refined.free]
+    names = tuple(post.free)
+    others = tuple(n for n in names if n not in refined.free)
+    io = [names.index(n) for n in others]
+    ir = [names.index(n) for n in refined.free]
     factor = IS_POOL
     while True:
         draws = _pool(beat, post, run, rng, factor * options.n_h_draws)
         beat_draws = draws.copy()
         beat_draws[:, ir] = refined.draw_given(draws[:, io], others, rng=None)
-        weights = ring_down_weights(refined, beat_draws, options.n_h_draws, rng)
+        weights = ring_down_weights(refined, beat_draws, options.n_h_draws, rng, names)
         if weights.passed or factor >= IS_POOL_MAX or draws.shape[0] < factor * options.n_h_draws:
             break
         factor *= 4
@@ -351,9 +355,10 @@ def _joint_draws(beat, post, run, refined, options, rng):
 def h_posterior(config, options, rng, backend, progress, beat=None):
     """The posterior of H: beat-note MCMC (or Laplace), updated by the ring-downs.
 
-    ``beat`` the beat-note fit when already made. Returns (beat-note fit, refinement or None, H*,
-    H draws (n, 4), sampler run or None, the draw's decomposition into beat-note and refined
-    parts).
+    ``beat`` the beat-note fit when already made; its ``free`` are the sampled H parameters
+    (BEAT_FREE, or BEAT_FREE + n_r for the free-order form). Returns (beat-note fit, refinement or
+    None, H*, H draws (n, len(beat.free)), sampler run or None, the draw's decomposition into
+    beat-note and refined parts; ``parts["names"]`` the draws' columns).
     """
     beat, post, p0, modes = _beat_posterior(config, options, beat)
     run = None
@@ -382,7 +387,8 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         )
     if options.method != "tf-crds" or not options.refine_free:
         draws = _pool(beat, post, run, rng, options.n_h_draws)
-        parts = {"others": BEAT_FREE, "refined": (), "records": None, "beat_draws": draws}
+        parts = {"others": post.free, "refined": (), "records": None, "beat_draws": draws}
+        parts["names"] = post.free
         return beat, None, beat.params, draws, run, parts
     free = tuple(options.refine_free)
     while True:
@@ -395,25 +401,26 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         # refine the one they know best relative to the beat note too, and weigh again
         free = free + (max(ratio, key=ratio.get),)
     parts = {
-        "others": tuple(n for n in BEAT_FREE if n not in free),
+        "names": tuple(post.free),
+        "others": tuple(n for n in post.free if n not in free),
         "refined": free,
         "refined_asked": tuple(options.refine_free),
         "records": idx,
         "beat_draws": beat_draws,
         "weights": weights,
     }
-    return beat, refined, posterior_centre(refined.params, draws), draws, run, parts
+    return beat, refined, posterior_centre(refined.params, draws, post.free), draws, run, parts
 
 
-def posterior_centre(params, draws):
+def posterior_centre(params, draws, names=BEAT_FREE):
     """H at the mean of the draws in the sampled parametrisation (log of the positive ones).
 
     The decay times and the line fit are evaluated there: the ring-down weighting can move the
     parameters the refinement held at the beat note, and first-order propagation about a point
     away from the posterior's centre would bias every tau by the mean shift.
     """
-    phi = to_sample(BEAT_FREE, np.asarray(draws, float).T).mean(axis=1)
-    return params.with_vector(from_sample(BEAT_FREE, phi), BEAT_FREE)
+    phi = to_sample(names, np.asarray(draws, float).T).mean(axis=1)
+    return params.with_vector(from_sample(names, phi), names)
 
 
 def fit_transients_noise(rd, records, t_cut_s, tf, window):

@@ -14,20 +14,23 @@ from bayes_tfcrds.uncertainty import line_budget as lb
 
 
 def test_ratio_step_is_first_order_propagation_of_a_over_a_ref():
-    """u(A/A_ref)^2 = (u_A/A_ref)^2 + (A u_ref/A_ref^2)^2 for independent A and A_ref (GUM Eq. 10);
-    A_ref and u_ref are the mean and sd of the CMDS posterior draws."""
+    """u(A/A_ref)^2 = (u_A/A_ref)^2 + (A u_ref/A_ref^2)^2 + (A u_B/A_ref^2)^2 for independent A
+    and A_ref (GUM Eq. 10); A_ref and u_ref are the mean and sd of the CMDS posterior draws, u_B the
+    CMDS Type B: A_ref x 0.06 % full width, rectangular (0.03 %/sqrt 3)."""
     rng = np.random.default_rng(1)
     a_ref = rng.normal(2.0e3, 3.0, size=20000)
     bud = lb._budget_ratio(2.004e3, 4.0, a_ref)
     m, s = a_ref.mean(), a_ref.std()
     assert bud.value == pytest.approx(2.004e3 / m, rel=1e-15, abs=0)
-    expected = np.hypot(4.0 / m, 2.004e3 * s / m**2)
+    u_b = m * 3e-4 / np.sqrt(3.0)
+    expected = np.sqrt((4.0 / m) ** 2 + (2.004e3 * s / m**2) ** 2 + (2.004e3 * u_b / m**2) ** 2)
     assert bud.combined_u == pytest.approx(expected, rel=1e-12, abs=0)
     # sensitivities d(A/A_ref)/dA = 1/A_ref and d(A/A_ref)/dA_ref = -A/A_ref^2 (signs matter as
     # soon as the two are correlated)
     c = [comp.sensitivity for comp in bud.components]
     assert c[0] == pytest.approx(1 / m, rel=1e-12, abs=0)
     assert c[1] == pytest.approx(-2.004e3 / m**2, rel=1e-12, abs=0)
+    assert c[2] == pytest.approx(-2.004e3 / m**2, rel=1e-12, abs=0)
     assert lb._budget_ratio(1.0, 0.1, None) is None
 
 
