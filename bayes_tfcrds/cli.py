@@ -467,7 +467,8 @@ def cmd_budget(args) -> int:
             "u(tau) and every ring-down likelihood use noise_v sqrt(kappa) (budget.md, "
             "'Ring-down noise')"
         )
-    _result(edge_units(res.budget_a).to_markdown())  # A in cm^-2, as in budget.json/.md
+    for line in edge_units(res.budget_a).to_markdown().splitlines():  # A in cm^-2, as in .json
+        _result(line)
     if res.refined is not None:
         for line in tension_lines(res.refined):
             _say(f"H refinement: {line}")

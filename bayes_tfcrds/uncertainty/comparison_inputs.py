@@ -111,7 +111,9 @@ def read_budget(path, lab: str, quantity: str) -> LabResult:
         )
     factor = _factor(quantity, entry.get("unit", unit_of(quantity)), f"{path}: field {key}.unit")
     value, u = _finite(entry["value"], entry["u"], f"{path}: field {key}")
-    return LabResult(lab, value * factor, u * factor, str(path))
+    dof = entry.get("effective_dof", "inf")  # GUM nu_eff of that budget ("inf" when infinite)
+    dof = math.inf if dof in ("inf", None) else float(dof)
+    return LabResult(lab, value * factor, u * factor, str(path), dof)
 
 
 def _factor(quantity: str, unit: str, where: str) -> float:

@@ -139,7 +139,6 @@ def plot_equivalence(comp: Comparison, stem: Path) -> list:
         literal(f"{comp.quantity}: d_i to the {comp.reference.method}, U (k = {comp.k:g})"),
         fontsize=9,
     )
-    fig.tight_layout()
     written = []
     for ext, dpi in ((".png", 200), (".svg", None)):
         path = stem.with_suffix(ext)

@@ -1005,8 +1005,10 @@ def _summary(
             "refined": list(options.refine_free),
         }
     if budget_ratio is not None:
-        ref = budget_ratio.components[1]
-        a_ref_hat, u_ref = ref.value, ref.u
+        # A_ref's u: the CMDS posterior and the CMDS Type B row together, as in the ratio table
+        ref_rows = budget_ratio.components[1:]
+        a_ref_hat = ref_rows[0].value
+        u_ref = float(np.hypot.reduce([c.u for c in ref_rows]))
         summary["reference_area"] = {
             "value": float(line_area_to_cm2(a_ref_hat)),
             "u": float(line_area_to_cm2(u_ref)),

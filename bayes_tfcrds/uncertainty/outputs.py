@@ -257,15 +257,25 @@ COVERAGE_NUMBERS = Path("reports") / "coverage" / "numbers.json"
 COVERAGE_QUANTITIES = ("A", "A/A_ref", "A (u_c)", "A/A_ref (u_c)")
 
 
+#: the same figures shipped with the package (an installed package has no reports/); a test
+#: keeps it equal to laplace_coverage(reports/coverage/numbers.json)
+PACKAGED_COVERAGE = Path(__file__).resolve().parents[1] / "data" / "laplace_coverage.json"
+
+
 def laplace_coverage(path=None) -> dict | None:
     """The measured coverage of the Laplace posterior, read from the coverage study's numbers.
 
-    ``path`` defaults to reports/coverage/numbers.json beside the package (a source checkout);
-    None when that file is absent (an installed package) or is not a Laplace coverage study.
-    Returns the file, the number of campaigns, and per quantity the fraction of campaigns whose
-    68 % and 95 % intervals held the truth.
+    ``path``: a coverage study's numbers.json; by default the copy shipped with the package
+    (``data/laplace_coverage.json``, extracted from reports/coverage/numbers.json). None when the
+    file is absent or is not a Laplace coverage study. Returns the file, the number of campaigns,
+    and per quantity the fraction of campaigns whose 68 % and 95 % intervals held the truth.
     """
-    path = Path(__file__).resolve().parents[2] / COVERAGE_NUMBERS if path is None else Path(path)
+    if path is None:
+        try:
+            return json.loads(PACKAGED_COVERAGE.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return None
+    path = Path(path)
     try:
         numbers = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
@@ -369,7 +379,7 @@ def instrument_markdown(instrument: dict) -> str:
         "etalon by the BIC weight w of the line fit with them). A finding means the data ask for "
         "the effect.",
         "",
-        "| row | sized by | change of A (Hz/m) | finding |",
+        "| row | sized by | change of A (cm^-2) | finding |",
         "|---|---|---|---|",
     ]
     for name, d in instrument.items():
@@ -378,7 +388,8 @@ def instrument_markdown(instrument: dict) -> str:
         else:
             by = f"w = {d['weight_extended']:.3g}"
         lines.append(
-            f"| {name} | {by} | {d['delta_a_hz_per_m']:+.3g} | {d.get('finding') or '-'} |"
+            f"| {name} | {by} | {float(line_area_to_cm2(d['delta_a_hz_per_m'])):+.3g} | "
+            f"{d.get('finding') or '-'} |"
         )
     return "\n".join(lines)
 

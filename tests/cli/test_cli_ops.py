@@ -299,3 +299,16 @@ def test_coverage_is_quoted_only_from_a_laplace_coverage_study(tmp_path):
     record = posterior_record("laplace", tmp_path / "absent.json")
     assert record["approximation"] and "coverage" not in record["measured_coverage"]
     assert "reports/coverage/numbers.json" in record["measured_coverage"]["source"]
+
+
+def test_packaged_laplace_coverage_equals_the_committed_coverage_report():
+    """An installed package has no reports/: budget quotes the copy in data/. It must be the
+    committed report's figures. After regenerating reports/coverage, refresh it with
+    ``json.dumps(laplace_coverage("reports/coverage/numbers.json"), indent=1)`` into
+    bayes_tfcrds/data/laplace_coverage.json."""
+    from pathlib import Path
+
+    from bayes_tfcrds.uncertainty.outputs import laplace_coverage
+
+    report = Path(__file__).resolve().parents[2] / "reports" / "coverage" / "numbers.json"
+    assert laplace_coverage() == laplace_coverage(report)
