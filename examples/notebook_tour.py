@@ -42,7 +42,7 @@ crds = bt.analyse_line(bundle, config, method="crds", t_cut_s=8e-6, physical_bou
 tf_crds = bt.analyse_line(bundle, config, t_cut_s=4e-6, calibration=calibration)
 for name, line in (("CRDS", crds), ("TF-CRDS", tf_crds)):
     r = line.ratio
-    print(f"{name}: A/A_ref - 1 = {100 * (r.value - 1):+.2f} % (u {100 * r.u:.2f} %)")
+    print(f"{name}: A/A_ref - 1 = {100 * (r.value - 1):+.2f} % (fit u {100 * r.u:.2f} %, no H)")
 print(tf_crds.summary())
 tf_crds.plot().savefig(out / "line.png", dpi=200)
 crds.plot().savefig(out / "line_crds.png", dpi=200)
@@ -50,6 +50,8 @@ crds.plot().savefig(out / "line_crds.png", dpi=200)
 # %% The uncertainty budget (Laplace posterior: seconds; the default MCMC takes minutes)
 budget = bt.run_budget(bundle, config, bt.BudgetOptions(posterior="laplace"))
 print(budget.summary())
+q = budget.ratio  # u_c: ring-down noise, H, CMDS and the data-sized rows
+print(f"TF-CRDS budget: A/A_ref - 1 = {100 * (q.value - 1):+.2f} % (u_c {100 * q.u:.2f} %)")
 budget.plot().savefig(out / "budget.png", dpi=200)
 
 # %% What does a plain CRDS model of this experiment miss? (one step of discovery)

@@ -113,7 +113,7 @@ def test_budget_progress_without_a_terminal_is_plain_lines_with_time_left(laplac
     _, _, _, stderr = laplace
     assert "\r" not in stderr
     stages = [x for x in stderr.splitlines() if ": stage " in x]
-    assert [x.split("stage ")[1].split(" ")[0] for x in stages] == [f"{k}/8" for k in range(1, 9)]
+    assert [x.split("stage ")[1].split(" ")[0] for x in stages] == [f"{k}/9" for k in range(1, 10)]
     assert all(x.startswith("# budget D2 (laplace): ") for x in stages)
     assert "left" in stages[0] and "left" not in stages[-1]
 
