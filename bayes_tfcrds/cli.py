@@ -800,7 +800,11 @@ def _bundle_and_model(sp, many: bool = False, file_optional: bool = False) -> No
             help="measurement bundle(s); with several, each writes into OUTPUT/<bundle stem>/",
         )
     else:
-        sp.add_argument("file", nargs="?" if file_optional else None)
+        sp.add_argument(
+            "file",
+            nargs="?" if file_optional else None,
+            help="measurement bundle (HDF5, bayes_tfcrds/data/FORMAT.md)",
+        )
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument(
         "--method",
@@ -1003,7 +1007,7 @@ def _add_discover(sub) -> None:
         sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
         note=" (discovery is deterministic; the seed is recorded)",
     )
-    sp.add_argument("file")
+    sp.add_argument("file", help="measurement bundle (HDF5, bayes_tfcrds/data/FORMAT.md)")
     sp.add_argument("--config", help="configuration name, e.g. D2")
     sp.add_argument(
         "--start",

@@ -20,10 +20,15 @@ COMPONENT_HEADER = ("component of u_c(A)", "u (cm^-2)", "share of u_c^2 (%)")
 
 def _head(summary: dict) -> str:
     window = f", {summary['window']} window" if summary.get("window") else ""
+    post = summary.get("posterior") or {}
+    approx = " (an APPROXIMATION: Gaussians at the least-squares fits)"
+    posterior = ""
+    if post:
+        posterior = f"; posterior: {post['method']}" + (approx if post["approximation"] else "")
     return (
         f"budget of configuration {summary['configuration']}: {summary['method']}{window}, "
         f"t_cut = {summary['t_cut_s'] * 1e6:g} µs, {summary['profile']}; status "
-        f"{summary['status']}"
+        f"{summary['status']}{posterior}"
     )
 
 
