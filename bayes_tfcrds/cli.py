@@ -126,15 +126,13 @@ def _one_float(text: str):
 
 
 def _config(bundle, name):
-    if name is None:
-        if len(bundle.configs) != 1:
-            raise Refused(
-                f"the bundle has configurations {list(bundle.configs)}; choose one with --config"
-            )
-        return next(iter(bundle.configs.values()))
-    if name not in bundle.configs:
-        raise Refused(f"no configuration {name!r} in the bundle (it has {list(bundle.configs)})")
-    return bundle.configs[name]
+    """The configuration a command analyses, refused (exit 1) when the bundle has no such one."""
+    from bayes_tfcrds.studies.common import configuration_of
+
+    try:
+        return configuration_of(bundle, name)
+    except ValueError as exc:
+        raise Refused(exc) from None
 
 
 def _load(path):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.studies.common import parallel_map
+from bayes_tfcrds.studies.common import configuration_of, parallel_map
 
 
 @dataclass(frozen=True)
@@ -45,18 +45,6 @@ def batch_folders(paths, outdir) -> list[Path]:
     return [Path(outdir) / p.stem for p in paths]
 
 
-def _configuration(bundle, name):
-    if name is None:
-        if len(bundle.configs) != 1:
-            raise ValueError(
-                f"the bundle has configurations {list(bundle.configs)}; choose one with --config"
-            )
-        return next(iter(bundle.configs.values()))
-    if name not in bundle.configs:
-        raise ValueError(f"no configuration {name!r} in the bundle (it has {list(bundle.configs)})")
-    return bundle.configs[name]
-
-
 def budget_task(job: BudgetJob) -> dict:
     """Run one bundle's budget and write its files; a refusal is returned, not raised.
 
@@ -71,7 +59,7 @@ def budget_task(job: BudgetJob) -> dict:
     record = {"bundle": job.bundle_path, "output": job.outdir, "status": None, "summary": None}
     try:
         bundle = load_bundle(job.bundle_path)
-        config = _configuration(bundle, job.config)
+        config = configuration_of(bundle, job.config)
         res = run_budget(
             bundle, config, job.options, np.random.default_rng(job.seed), outdir=job.outdir
         )

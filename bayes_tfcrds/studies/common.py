@@ -15,6 +15,37 @@ from bayes_tfcrds.studies.spec import Study, StudyError
 NEEDS_CMDS = ("tcut", "window_history", "budgets")
 
 
+def stored_record(path, fingerprint: str) -> dict | None:
+    """A finished task's JSON record at ``path`` if it was made with these settings, else None.
+
+    Studies keep one record per task (campaign, seed) so that an interrupted run resumes; a
+    record of other settings, or one left unreadable by a kill, is run again.
+    """
+    import json
+
+    path = Path(path)
+    if not path.exists():
+        return None
+    try:
+        rec = json.loads(path.read_text())
+    except (json.JSONDecodeError, OSError):
+        return None
+    return rec if rec.get("fingerprint") == fingerprint else None
+
+
+def configuration_of(bundle, name):
+    """The configuration ``name`` of ``bundle`` (the only one when None); ValueError otherwise."""
+    if name is None:
+        if len(bundle.configs) != 1:
+            raise ValueError(
+                f"the bundle has configurations {list(bundle.configs)}; choose one with --config"
+            )
+        return next(iter(bundle.configs.values()))
+    if name not in bundle.configs:
+        raise ValueError(f"no configuration {name!r} in the bundle (it has {list(bundle.configs)})")
+    return bundle.configs[name]
+
+
 def load_study_bundle(study: Study):
     """The measurement bundle a study names, refused (StudyError) if the study cannot use it.
 

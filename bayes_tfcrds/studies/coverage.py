@@ -42,6 +42,7 @@ from bayes_tfcrds.simulate.campaign import (
     line_truth,
     simulate_campaign,
 )
+from bayes_tfcrds.studies.common import stored_record
 
 LEVELS = (0.68, 0.95)
 Z = {p: float(stats.norm.ppf(0.5 + p / 2)) for p in LEVELS}  # 0.994, 1.960
@@ -385,13 +386,9 @@ def campaign_task(args) -> dict:
     """Pool task: campaign ``index``, read from OUTDIR/campaigns if done, else run and stored."""
     settings, index, folder = args
     path = Path(folder) / f"c{index:04d}_{settings.options.posterior}.json"
-    if path.exists():
-        try:
-            rec = json.loads(path.read_text())
-            if rec.get("fingerprint") == settings.fingerprint():
-                return rec
-        except (json.JSONDecodeError, OSError):
-            pass  # unreadable: run again
+    done = stored_record(path, settings.fingerprint())
+    if done is not None:
+        return done
     rec = run_campaign(settings, index)
     atomic_write_text(path, json.dumps(rec, indent=1, default=float) + "\n")
     return rec

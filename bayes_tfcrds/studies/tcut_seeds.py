@@ -34,6 +34,7 @@ from scipy import stats
 from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.output.plotting import literal, pyplot
 from bayes_tfcrds.simulate.campaign import Campaign, parse_effect, simulate_campaign
+from bayes_tfcrds.studies.common import stored_record
 from bayes_tfcrds.studies.tcut import LETTER_BIAS, _tcut_config, _tcut_figure
 
 RECORD_VERSION = 1
@@ -121,13 +122,9 @@ def seed_task(args) -> dict:
     settings, index, folder = args
     folder = Path(folder)
     path = folder / f"s{index:04d}.json"
-    if path.exists():
-        try:
-            rec = json.loads(path.read_text())
-            if rec.get("fingerprint") == settings.fingerprint():
-                return rec
-        except (json.JSONDecodeError, OSError):
-            pass  # unreadable: run again
+    done = stored_record(path, settings.fingerprint())
+    if done is not None:
+        return done
     rec = run_seed(settings, index, folder)
     atomic_write_text(path, json.dumps(rec, indent=1, default=float) + "\n")
     return rec
