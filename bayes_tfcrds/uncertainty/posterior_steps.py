@@ -146,9 +146,13 @@ def ring_down_weights(refined, beat_draws, n: int, rng, names=BEAT_FREE) -> Ring
     """Weight ``beat_draws`` (columns ``names``) by the ring-down likelihood; resample ``n``."""
     logw = ringdown_log_likelihood(refined, beat_draws, names)
     logw = np.where(np.isfinite(logw), logw, -np.inf)
-    w = np.exp(logw - np.max(logw))
-    w /= w.sum()
-    ess = float(1.0 / np.sum(w * w))
+    top = np.max(logw)
+    if np.isfinite(top):
+        w = np.exp(logw - top)
+        w /= w.sum()
+        ess = float(1.0 / np.sum(w * w))
+    else:  # the ring-downs reject every draw of this pool: ESS 0 (a larger pool is drawn)
+        w, ess = np.full(logw.size, 1.0 / logw.size), 0.0
     positions = (rng.uniform() + np.arange(n)) / n
     picks = np.minimum(np.searchsorted(np.cumsum(w), positions), w.size - 1)
     return RingDownWeights(pool=int(w.size), ess=ess, picks=picks)

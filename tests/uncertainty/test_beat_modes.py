@@ -3,6 +3,7 @@
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from bayes_tfcrds.fit.beat_note import MODE_DCHI2
 from bayes_tfcrds.simulate.campaign import Campaign, ChainPreset, simulate_campaign
@@ -48,3 +49,26 @@ def test_a_unimodal_beat_note_keeps_the_plain_sampler():
     beat, _, _, modes = _beat_posterior(config, BudgetOptions())
     assert modes is None
     assert abs(beat.params.f_c_hz / tf.f_c_hz - 1) < 0.2
+
+
+def test_a_pool_the_ring_downs_reject_entirely_has_zero_ess(monkeypatch):
+    """Every draw at -inf (or nan) log-likelihood: ESS 0, so the pool fails its gate and a larger
+    one is drawn, never NaN weights; a finite pool keeps the Kish ESS (two equal weights: 2)."""
+    import warnings
+
+    from bayes_tfcrds.uncertainty import posterior_steps as ps
+
+    draws = np.zeros((4, 4))
+    monkeypatch.setattr(
+        ps, "ringdown_log_likelihood", lambda *a: np.array([-np.inf, np.nan, -np.inf, np.nan])
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no 'invalid value' on the way
+        res = ps.ring_down_weights(None, draws, 4, np.random.default_rng(0))
+    assert res.ess == 0.0 and not res.passed
+    monkeypatch.setattr(
+        ps, "ringdown_log_likelihood", lambda *a: np.array([0.0, 0.0, -np.inf, -np.inf])
+    )
+    res = ps.ring_down_weights(None, draws, 4, np.random.default_rng(0))
+    assert res.ess == pytest.approx(2.0, rel=1e-12)
+    assert set(res.picks) <= {0, 1}
