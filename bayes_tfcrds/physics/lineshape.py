@@ -75,6 +75,12 @@ def doppler_hwhm_hz(nu0_hz, temperature_k, mass_u):
     )
 
 
+def _flat_broadcast(*xs):
+    """(common shape, the inputs broadcast to it and flattened as float arrays)."""
+    arrs = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in xs))
+    return arrs[0].shape, [np.ravel(x) for x in arrs]
+
+
 def _check_doppler(gd):
     """The Doppler-broadened profiles divide by GammaD.
 
@@ -219,23 +225,9 @@ def qsdhcp(
     is defined for Delta2 = 0 and 4 ln2 |Gamma2| Re C0~ < GammaD^2, where it is finite at
     every detuning; elsewhere it is NaN.
     """
-    arrs = np.broadcast_arrays(
-        *(
-            np.asarray(x, dtype=float)
-            for x in (
-                nu_hz,
-                nu0_hz,
-                doppler_hwhm_hz,
-                gamma0_hz,
-                gamma2_hz,
-                delta0_hz,
-                delta2_hz,
-                nu_vc_hz,
-            )
-        )
+    shape, (nu, nu0, gd, g0, g2, d0, d2, nvc) = _flat_broadcast(
+        nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz, nu_vc_hz
     )
-    shape = arrs[0].shape
-    nu, nu0, gd, g0, g2, d0, d2, nvc = (np.ravel(x) for x in arrs)
     _check_doppler(gd)
     cte = _SQRT_LN2 / gd  # 1/Hz
     c0t = (g0 - 1.5 * g2 + nvc) + 1j * (d0 - 1.5 * d2)  # Hz
@@ -339,24 +331,9 @@ def htp(
     nu_VC - eta C0 acting on C0~ (B = 0 there, see ``_htp_b_term``). Outside the domain
     (eta >= 1, or qsdhcp's undefined continuation) the value is NaN, never a wrong number.
     """
-    arrs = np.broadcast_arrays(
-        *(
-            np.asarray(x, dtype=float)
-            for x in (
-                nu_hz,
-                nu0_hz,
-                doppler_hwhm_hz,
-                gamma0_hz,
-                gamma2_hz,
-                delta0_hz,
-                delta2_hz,
-                nu_vc_hz,
-                eta,
-            )
-        )
+    shape, (nu, nu0, gd, g0, g2, d0, d2, nvc, et) = _flat_broadcast(
+        nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz, nu_vc_hz, eta
     )
-    shape = arrs[0].shape
-    nu, nu0, gd, g0, g2, d0, d2, nvc, et = (np.ravel(x) for x in arrs)
     _check_doppler(gd)
     cte = _SQRT_LN2 / gd  # 1/Hz
     c0 = g0 + 1j * d0  # Hz
