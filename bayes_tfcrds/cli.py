@@ -707,6 +707,9 @@ def cmd_discover(args) -> int:
             t_cuts=args.tcut or DISCOVERY_T_CUTS,
             threshold=args.threshold,
             progress=None if args.quiet else _say,
+            rng=np.random.default_rng(args.seed),
+            alpha=args.alpha,
+            n_boot=args.n_boot,
         )
     except ValueError as exc:
         return _fail(exc, 2)
@@ -1003,7 +1006,7 @@ def _add_discover(sub) -> None:
     """The ``discover`` command's options."""
     sp = _common(
         sub.add_parser("discover", help="find the effects missing from a model of the experiment"),
-        note=" (discovery is deterministic; the seed is recorded)",
+        note=" (it draws the bootstrap nulls of the gap metrics)",
     )
     sp.add_argument("file", help="measurement bundle (HDF5, bayes_tfcrds/data/FORMAT.md)")
     sp.add_argument("--config", help="configuration name, e.g. D2")
@@ -1018,6 +1021,19 @@ def _add_discover(sub) -> None:
     )
     sp.add_argument(
         "--threshold", type=float, default=10.0, help="Delta BIC an effect needs to be added"
+    )
+    sp.add_argument(
+        "--alpha",
+        type=float,
+        default=0.05,
+        help="family-wise probability of adding any effect to a model that already describes "
+        "the data (spent as alpha/2, alpha/4, ... over the steps)",
+    )
+    sp.add_argument(
+        "--n-boot",
+        type=int,
+        default=40,
+        help="bootstrap replicates of the gap metrics' null per model state",
     )
     sp.add_argument(
         "-o", "--output", required=True, help="output folder (discovery.json, discovery.html)"

@@ -31,21 +31,35 @@ def _head(result) -> str:
     final = result.evaluations[-1].state.model.label()
     return (
         f"discovery on configuration {result.config}: {result.start.label()} -> {final} "
-        f"(threshold Delta BIC {result.threshold:g}, {result.seconds:.1f} s)"
+        f"(threshold Delta BIC {result.threshold:g}, {result.seconds:.1f} s); stopped: "
+        f"{result.stop_reason}"
     )
+
+
+GAP_HEADER = ("gap", "calibrated z", "null band of z", "open", "where")
 
 
 def _gap_rows(result) -> list:
     return [
-        [k, f"{v['z']:.2f}", v.get("where", "")] for k, v in result.evaluations[-1].gaps.items()
+        [
+            k,
+            f"{v.get('z_cal', v['z']):.2f}",
+            f"[{v['band'][0]:.2f}, {v['band'][1]:.2f}]" if "band" in v else "",
+            "OPEN" if v.get("open") else "closed",
+            v.get("where", ""),
+        ]
+        for k, v in result.evaluations[-1].gaps.items()
     ]
 
 
 def discovery_text(result) -> str:
     """The steps and the gaps the final model leaves, as plain text."""
     out = [_head(result), text_table(STEP_HEADER, _step_rows(result))]
-    out.append("gaps of the final model (z: 0 when the model explains the data block):")
-    out.append(text_table(("gap", "z", "where"), _gap_rows(result)))
+    out.append(
+        "gaps of the final model (calibrated z: about N(0, 1) when the model explains the data "
+        "block; open when outside the null band of the analytic z):"
+    )
+    out.append(text_table(GAP_HEADER, _gap_rows(result)))
     if result.noise is not None:
         out.append(result.noise.summary_line())
     return "\n".join(out)
@@ -54,13 +68,13 @@ def discovery_text(result) -> str:
 def discovery_html(result) -> str:
     """The steps and the final gaps as two small HTML tables."""
     return html_table(STEP_HEADER, _step_rows(result), caption=_head(result)) + html_table(
-        ("gap of the final model", "z", "where"), _gap_rows(result)
+        GAP_HEADER, _gap_rows(result), caption="gaps of the final model"
     )
 
 
 @house_style
 def plot_discovery(result, ax=None):
-    """|z| of every gap after each step (log scale; dotted line at 3); a matplotlib Figure."""
+    """Calibrated z of every gap after each step (log scale); a matplotlib Figure."""
     if ax is None:
         fig, axes = new_figure(1, 1)
         ax = axes[0, 0]
@@ -68,12 +82,11 @@ def plot_discovery(result, ax=None):
         fig = ax.figure
     xs = np.arange(len(result.evaluations))
     for g in result.evaluations[0].gaps:
-        zs = [abs(e.gaps[g]["z"]) if g in e.gaps else np.nan for e in result.evaluations]
+        zs = [e.gaps[g].get("z_cal", np.nan) if g in e.gaps else np.nan for e in result.evaluations]
         ax.plot(xs, np.maximum(zs, 1e-2), "o-", label=g)
-    ax.axhline(3, color="0.3", ls=":", lw=1)
     ax.set_yscale("log")
     ax.set_xticks(xs, ["start", *result.effects_added], rotation=20)
     ax.set_xlabel("model after each step (effect added)")
-    ax.set_ylabel("|z| of each gap (1)")
+    ax.set_ylabel("calibrated z of each gap (1)")
     ax.legend(ncols=3, frameon=False, fontsize="small", **LEGEND_ABOVE)
     return fig

@@ -3,14 +3,25 @@
 Start from a declared model (default plain CRDS with a Voigt line), compare it with every data
 block where model and data can disagree (transient residuals in time and frequency, tau and A
 against t_cut, spectrum residuals, the beat note, the CRDS-CMDS gap), then try each canonical
-effect as a model extension (:mod:`bayes_tfcrds.fit.extensions`), score it by the drop of BIC
-on the data block it acts on, add the best if its evidence passes a threshold, and repeat until none
-does.
+effect as a model extension (:mod:`bayes_tfcrds.fit.extensions`) and score it by the drop of BIC
+on the data block it acts on.
 
 Evidence is ``Delta BIC = chi2_before - chi2_after - k ln n`` on the block (every extra
-parameter counted, per-transient ones included). The threshold (``DEFAULT_THRESHOLD`` = 10, "very
-strong" on the Kass-Raftery scale of 2 ln B) is checked on data with nothing hidden by
-``tests/discovery/test_discover.py`` and ``benchmarks/discovery_confusion.py``.
+parameter counted, per-transient ones included); a candidate needs ``DEFAULT_THRESHOLD`` = 10
+("very strong" on the Kass-Raftery scale of 2 ln B) to be considered.
+
+When to add, and when to stop, is decided by the gaps, each against its own null measured by a
+parametric bootstrap under the current model (:mod:`bayes_tfcrds.discovery.nulls`):
+
+* a round runs only while some gap is outside its null band at level alpha/2^step (Bonferroni
+  over the gaps), so a model that already describes the data gains any effect with probability
+  at most alpha (``DEFAULT_ALPHA`` = 5 %): the family-wise error rate, hence also the
+  false-discovery rate, of the whole selection is at most alpha;
+* of the candidates with evidence, in order of evidence, the first that removes at least half
+  (``EXPLAIN_FRACTION``) of the open misfit of its own data block (the sum of calibrated z^2 of
+  its open gaps) is added; one that only soaks up a part of a misfit it does not describe is not;
+* when gaps stay open and no candidate explains them, discovery stops and reports "unexplained
+  structure" with the open gaps and where they are, instead of adding the nearest candidates.
 
 Units: SI inside (s, Hz, V, 1/m); cm^-2 only in the report.
 """
@@ -18,11 +29,12 @@ Units: SI inside (s, Hz, V, 1/m); cm^-2 only in the report.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import stats
 
+from bayes_tfcrds.discovery.nulls import N_BOOT, gap_nulls, pre_extinction_noise
 from bayes_tfcrds.fit.extensions import (
     SHARED,
     TransientSpec,
@@ -60,6 +72,24 @@ SPECTRUM_LEVEL = ("speed_dependence", "hard_collisions", "etalon", "neighbour_li
 DISCOVERY_T_CUTS = (2e-6, 4e-6, 6e-6)
 DEFAULT_THRESHOLD = 10.0
 N_TIME_BINS = 12
+#: family-wise probability of adding any effect to a model that already describes the data
+DEFAULT_ALPHA = 0.05
+#: a candidate is added only if it removes at least this fraction of the open misfit of its block
+EXPLAIN_FRACTION = 0.5
+#: candidates with evidence tried in turn per round (each costs an evaluation and a bootstrap)
+MAX_TRIES = 4
+#: the data block each gap metric measures (a candidate is judged on the gaps of its blocks)
+GAP_BLOCK = {
+    "transient_chi2": "transients",
+    "transient_time_structure": "transients",
+    "transient_freq_structure": "transients",
+    "tau_tcut": "transients",
+    "area_tcut": "transients",
+    "spectrum_chi2": "spectrum",
+    "spectrum_structure": "spectrum",
+    "beat_chi2": "beat",
+    "crds_cmds": "reference",
+}
 
 
 # --------------------------------------------------------------------------- the model
@@ -175,6 +205,8 @@ class Evaluation:
     detuning: np.ndarray  # (m_good,) Hz
     beat: dict
     dt_s: float = 0.0
+    coef_first: np.ndarray | None = None  # (m_good, k) linear parameters of the fits at t_cut[0]
+    level: float | None = None  # the test level its gaps' bands are drawn at (calibrate_gaps)
 
 
 def _z_from_chi2(chi2, dof):
@@ -376,8 +408,8 @@ def _spectrum_gaps(lf, det, gd, t_cuts) -> dict:
     return gaps
 
 
-def _reference_gaps(beat, ref, line, t_cuts) -> dict:
-    """The beat note's chi2 and the CRDS-CMDS gap A/A_ref - 1."""
+def _reference_gaps(beat, ref, line, t_cuts, u_h: float = 0.0) -> dict:
+    """The beat note's chi2 and the CRDS-CMDS gap A/A_ref - 1 (``u_h``: u(A) from H, Hz/m)."""
     gaps = {}
     a0, u0 = line.value("line_area"), line.stderr("line_area")
     if beat is not None:
@@ -392,10 +424,11 @@ def _reference_gaps(beat, ref, line, t_cuts) -> dict:
     if ref is not None:
         ar, ur = ref.value("line_area"), ref.stderr("line_area")
         r = a0 / ar
-        u = r * np.hypot(u0 / a0, ur / ar)
+        u = r * np.sqrt((u0 / a0) ** 2 + (ur / ar) ** 2 + (u_h / a0) ** 2)
         gaps["crds_cmds"] = {
             "value": float(r - 1),
             "u": float(u),
+            "u_rel_from_h": float(u_h / a0),
             "expected": 0.0,
             "z": float(abs(r - 1) / u),
             "where": f"A/A_ref - 1 at t_cut {t_cuts[0] * 1e6:g} us",
@@ -403,10 +436,60 @@ def _reference_gaps(beat, ref, line, t_cuts) -> dict:
     return gaps
 
 
+def h_area_uncertainty(
+    bundle, config, state: ModelState, t_cut_s, good, tau_start, area_hz_per_m: float
+) -> float:
+    """u(A) (Hz/m) from the uncertainty of H: A refitted with each H parameter at value +/- u.
+
+    Each parameter's u is the refinement's where it refined it, the beat note's otherwise;
+    their correlations are neglected; a side outside H's domain leaves the one-sided difference
+    from ``area_hz_per_m`` (A at the state's H). 0 without a transfer function in the model.
+    Without it, A/A_ref - 1 is judged against the fits' noise alone (3.6e-5 and 8.3e-5
+    relative on a reduced D2 campaign) while H's f_c alone moves A by 1.4e-4.
+    """
+    cal = state.calibration
+    if state.model.method != "tf-crds" or cal is None:
+        return 0.0
+    u = {k: v for k, v in cal.beat.stderr.items() if k != "scale"}
+    if cal.refined is not None:
+        u.update(cal.refined.stderr)
+    rd = config.ringdowns
+    nu = np.asarray(rd.nu_hz, float)[good]
+    tc = np.full(good.size, float(t_cut_s))
+    var = 0.0
+    for name, up in u.items():
+        if not (np.isfinite(up) and up > 0):
+            continue
+        areas = []
+        for sign in (-1.0, 1.0):
+            try:
+                tf = replace(cal.params, **{name: getattr(cal.params, name) + sign * up})
+            except ValueError:  # outside H's physical domain: the other side alone
+                continue
+            spec = replace(state.spec(), tf=tf)
+            res = fit_transient_rows(rd, tc, good, spec, tau_start)
+            lf = fit_lines(bundle, config, state.model, nu, res.tau_s, res.tau_u_s)
+            areas.append((sign, lf.value("line_area")))
+        if len(areas) == 2:
+            var += ((areas[1][1] - areas[0][1]) / 2) ** 2
+        elif areas:
+            var += (areas[0][1] - area_hz_per_m) ** 2
+    return float(np.sqrt(var))
+
+
 def evaluate(
-    bundle, config, state: ModelState, t_cuts=DISCOVERY_T_CUTS, tau_start=None
+    bundle,
+    config,
+    state: ModelState,
+    t_cuts=DISCOVERY_T_CUTS,
+    tau_start=None,
+    h_uncertainty: bool = True,
 ) -> Evaluation:
-    """Fit every block of ``config`` under ``state`` and compute the gap metrics."""
+    """Fit every block of ``config`` under ``state`` and compute the gap metrics.
+
+    ``h_uncertainty`` adds H's uncertainty to that of A/A_ref - 1 (a few more fits; the
+    bootstrap, which does not resample that gap, leaves it out).
+    """
     rd = config.ringdowns
     t_cuts = np.asarray(t_cuts, float)
     good = np.nonzero(~np.asarray(rd.clipped))[0]
@@ -432,7 +515,14 @@ def evaluate(
     gaps.update(_tcut_gaps(tau, tau_u, lines, t_cuts, det, gd, m))
     lf = lines[0]
     gaps.update(_spectrum_gaps(lf, det, gd, t_cuts))
-    gaps.update(_reference_gaps(beat, ref, lf, t_cuts))
+    u_h = (
+        h_area_uncertainty(
+            bundle, config, state, t_cuts[0], good, tau[:, 0], lines[0].value("line_area")
+        )
+        if (h_uncertainty and ref is not None)
+        else 0.0
+    )
+    gaps.update(_reference_gaps(beat, ref, lf, t_cuts, u_h))
     block = {"transients": (chi2_t, n_t), "spectrum": (lf.chi2, lf.n)}
     if beat is not None:
         block["beat"] = (beat["chi2"], beat["n"])
@@ -450,6 +540,7 @@ def evaluate(
         detuning=det,
         beat=beat,
         dt_s=float(rd.dt_s),
+        coef_first=res.coef[first],
     )
 
 
@@ -467,6 +558,7 @@ class Candidate:
     params: dict  # name -> (value, u, unit)
     state: ModelState | None
     note: str = ""
+    explained: float | None = None  # fraction of its blocks' open misfit removed, when tried
 
 
 def _fail(effect, note):
@@ -668,6 +760,10 @@ class DiscoveryResult:
     threshold: float
     seconds: float
     noise: object = None  # NoiseDiagnosis of the ring-downs at the start (fit.noise), or None
+    alpha: float = DEFAULT_ALPHA
+    n_boot: int = N_BOOT
+    stop_reason: str = ""
+    unexplained: list = field(default_factory=list)  # open gaps at the stop: gap, z_cal, where
 
     def summary(self) -> str:
         """Plain text: the steps (effect, evidence, fitted parameters with units), final gaps."""
@@ -696,7 +792,11 @@ class DiscoveryResult:
         def gaps(g):
             return {
                 k: {
-                    kk: (float(vv) if isinstance(vv, (int, float, np.floating)) else vv)
+                    kk: (
+                        float(vv)
+                        if isinstance(vv, (int, float, np.floating)) and not isinstance(vv, bool)
+                        else vv
+                    )
                     for kk, vv in v.items()
                 }
                 for k, v in g.items()
@@ -714,6 +814,7 @@ class DiscoveryResult:
                         "n": c.n,
                         "block": c.block,
                         "note": c.note,
+                        "explained_fraction": c.explained,
                     }
                     for c in cands
                 ]
@@ -724,6 +825,10 @@ class DiscoveryResult:
             "start_label": self.start.label(),
             "final_label": self.evaluations[-1].state.model.label(),
             "threshold_delta_bic": self.threshold,
+            "alpha": self.alpha,
+            "n_boot": self.n_boot,
+            "stop_reason": self.stop_reason,
+            "unexplained": self.unexplained,
             "steps": [
                 {**s, "gaps_before": gaps(s["gaps_before"]), "gaps_after": gaps(s["gaps_after"])}
                 for s in self.steps
@@ -807,10 +912,11 @@ def discover(
     threshold: float = DEFAULT_THRESHOLD,
     max_steps: int = 6,
     progress=None,
+    rng: np.random.Generator | None = None,
+    alpha: float = DEFAULT_ALPHA,
+    n_boot: int = N_BOOT,
 ) -> DiscoveryResult:
-    """Greedy forward selection of missing effects on one configuration (see the module doc).
-
-    ``progress`` is an optional callable taking one line of text.
+    """Forward selection of missing effects on one configuration (see the module doc).
 
     Parameters
     ----------
@@ -823,17 +929,26 @@ def discover(
     t_cuts : sequence of float
         Truncation times (s) the gaps are measured at.
     threshold : float
-        Delta BIC an effect needs to be added.
+        Delta BIC a candidate needs on its data block to be considered.
     max_steps : int
         At most this many effects are added.
     progress : callable, optional
         Receives one line of text per candidate and step.
+    rng : numpy.random.Generator, optional
+        Draws the bootstrap nulls of the gap metrics (default ``default_rng(0)``: the same data
+        give the same result).
+    alpha : float
+        Family-wise probability of adding any effect to a model that already describes the data
+        (spent as alpha/2, alpha/4, ... over the steps).
+    n_boot : int
+        Bootstrap replicates per model state.
 
     Returns
     -------
     DiscoveryResult
-        The effects added with their evidence and parameters, the gaps before and after;
-        ``summary()``, ``to_dict()``, ``plot()``.
+        The effects added with their evidence and parameters, the gaps before and after with their
+        null bands, why discovery stopped and what it left unexplained; ``summary()``,
+        ``to_dict()``, ``plot()``.
     """
     t0 = time.perf_counter()
     say = progress or (lambda s: None)
@@ -841,54 +956,180 @@ def discover(
         raise ValueError(
             f"no configuration {config_name!r} in the bundle (it has {list(bundle.configs)})"
         )
+    if not (0.0 < alpha < 1.0) or n_boot < 10:
+        raise ValueError(f"alpha must be in (0, 1) and n_boot >= 10, got {alpha} and {n_boot}")
     config = bundle.configs[config_name]
+    rng = np.random.default_rng(0) if rng is None else rng
     noise = _noise_diagnosis(config)
     if noise is not None:
         say(noise.summary_line())
+    null = _NullSettings(rng, n_boot, pre_extinction_noise(config.ringdowns), alpha)
     state = _start_state(bundle, config, start, t_cuts)
     model = state.model
     ev = evaluate(bundle, config, state, t_cuts)
-    evaluations, steps, added, rounds = [ev], [], [], []
-    say(f"start {model.label()}: " + ", ".join(f"{k} z={v['z']:.1f}" for k, v in ev.gaps.items()))
-    for _ in range(max_steps):
-        cands = []
-        for eff in CANDIDATES:
-            if eff in ev.state.model.effects:
-                continue
-            c = try_candidate(bundle, config, ev, eff, t_cuts)
-            cands.append(c)
-            say(
-                f"  {eff:20s} evidence {c.evidence:12.1f} (dchi2 {c.delta_chi2:.1f}, k {c.k}) "
-                f"{c.note}"
-            )
-        cands.sort(key=lambda c: -c.evidence if np.isfinite(c.evidence) else np.inf)
-        rounds.append(cands)
-        best = cands[0] if cands else None
-        if best is None or not np.isfinite(best.evidence) or best.evidence < threshold:
-            say("no candidate passes the threshold: stop")
-            break
-        _add_shared_uncertainty(config, ev, best)
-        new_ev = evaluate(bundle, config, best.state, t_cuts, tau_start=ev.tau[:, 0])
-        runner = cands[1] if len(cands) > 1 else None
-        steps.append(_step_record(best, runner, ev, new_ev))
-        added.append(best.effect)
-        say(
-            f"added {best.effect} (evidence {best.evidence:.1f}): "
-            + ", ".join(f"{k} z={v['z']:.1f}" for k, v in new_ev.gaps.items())
-        )
-        ev = new_ev
-        evaluations.append(ev)
+    calibrate_gaps(bundle, config, ev, null, step_alpha(alpha, 1))
+    say(f"start {model.label()}: {_gap_line(ev)}")
+    loop = _select(bundle, config, ev, null, t_cuts, threshold, max_steps, say)
     return DiscoveryResult(
         config=config_name,
         start=model,
-        steps=steps,
-        effects_added=added,
-        evaluations=evaluations,
-        candidates=rounds,
+        steps=loop["steps"],
+        effects_added=loop["added"],
+        evaluations=loop["evaluations"],
+        candidates=loop["rounds"],
         threshold=threshold,
         seconds=time.perf_counter() - t0,
         noise=noise,
+        alpha=alpha,
+        n_boot=n_boot,
+        stop_reason=loop["stop"],
+        unexplained=loop["unexplained"],
     )
+
+
+@dataclass(frozen=True)
+class _NullSettings:
+    rng: np.random.Generator
+    n_boot: int
+    noise: object  # nulls.NoiseModel
+    alpha: float
+
+
+def step_alpha(alpha: float, step: int) -> float:
+    """The level of step ``step`` (1, 2, ...): alpha/2^step, so the levels sum to at most alpha."""
+    return alpha / 2.0**step
+
+
+def calibrate_gaps(bundle, config, ev: Evaluation, null: _NullSettings, level: float) -> None:
+    """Add each gap's bootstrap null to ``ev``: z_cal, p, band, open (Bonferroni at ``level``)."""
+    nulls = gap_nulls(bundle, config, ev, evaluate, null.rng, null.n_boot, null.noise)
+    p_gap = level / len(nulls)
+    for name, g in nulls.items():
+        lo, hi = g.band(p_gap)
+        ev.gaps[name].update(
+            z_cal=float(g.z_cal),
+            p=float(g.p_value()),
+            band=[float(lo), float(hi)],
+            open=bool(g.p_value() < p_gap),
+            null="bootstrap" if g.resampled else "analytic",
+            null_n=g.n,
+        )
+    ev.level = level
+
+
+def open_gaps(ev: Evaluation, level: float | None = None) -> list:
+    """Names of the gaps outside their null band (p below ``level`` / number of gaps)."""
+    p_gap = (ev.level if level is None else level) / len(ev.gaps)
+    return [k for k, g in ev.gaps.items() if g.get("p", 1.0) < p_gap]
+
+
+def block_excess(ev: Evaluation, blocks: set, level: float) -> float:
+    """Sum of z_cal^2 over the open gaps of the data ``blocks`` (the misfit left to explain)."""
+    return float(
+        sum(ev.gaps[k]["z_cal"] ** 2 for k in open_gaps(ev, level) if GAP_BLOCK[k] in blocks)
+    )
+
+
+def _gap_line(ev: Evaluation) -> str:
+    return ", ".join(
+        f"{k} z={v['z']:.1f}" + (" OPEN" if v.get("open") else "") for k, v in ev.gaps.items()
+    )
+
+
+def _explains(bundle, config, ev, cand: Candidate, null, t_cuts, level, next_level):
+    """The candidate's model, evaluated and calibrated, and the share of misfit it removes.
+
+    The share is of the open misfit of the candidate's data blocks (None if nothing there is open).
+    """
+    _add_shared_uncertainty(config, ev, cand)
+    new_ev = evaluate(bundle, config, cand.state, t_cuts, tau_start=ev.tau[:, 0])
+    calibrate_gaps(bundle, config, new_ev, null, next_level)
+    blocks = set(cand.block.split("+"))
+    before = block_excess(ev, blocks, level)
+    if before <= 0.0:
+        return new_ev, None
+    return new_ev, 1.0 - block_excess(new_ev, blocks, level) / before
+
+
+def _unexplained(ev: Evaluation) -> list:
+    return [
+        {"gap": k, "z_cal": ev.gaps[k]["z_cal"], "where": ev.gaps[k]["where"]}
+        for k in open_gaps(ev)
+    ]
+
+
+def _select(bundle, config, ev, null, t_cuts, threshold, max_steps, say) -> dict:
+    """The selection loop; stops at the first round that adds nothing, and says why.
+
+    While a gap is open, the best-evidenced candidate that removes at least
+    :data:`EXPLAIN_FRACTION` of its blocks' open misfit is added.
+    """
+    out = {"steps": [], "added": [], "evaluations": [ev], "rounds": [], "unexplained": []}
+    out["stop"] = f"max_steps ({max_steps}) reached"
+    for step in range(1, max_steps + 1):
+        level = step_alpha(null.alpha, step)
+        if not open_gaps(ev):
+            out["stop"] = f"every gap inside its null band (level {level:.3g}, Bonferroni)"
+            break
+        cands = _round(bundle, config, ev, t_cuts, say)
+        out["rounds"].append(cands)
+        passing = [c for c in cands if np.isfinite(c.evidence) and c.evidence >= threshold]
+        chosen = None
+        for c in passing[:MAX_TRIES]:
+            new_ev, frac = _explains(
+                bundle, config, ev, c, null, t_cuts, level, step_alpha(null.alpha, step + 1)
+            )
+            c.explained = frac
+            say(f"  {c.effect}: explains {_pct(frac)} of the open misfit of its block")
+            if frac is not None and frac >= EXPLAIN_FRACTION:
+                chosen = (c, new_ev)
+                break
+        if chosen is None:
+            out["unexplained"] = _unexplained(ev)
+            out["stop"] = _stop_reason(passing, threshold)
+            say(out["stop"])
+            break
+        best, new_ev = chosen
+        runner = next((c for c in cands if c is not best), None)
+        out["steps"].append(
+            {
+                **_step_record(best, runner, ev, new_ev),
+                "level": level,
+                "explained_fraction": best.explained,
+            }
+        )
+        out["added"].append(best.effect)
+        say(f"added {best.effect} (evidence {best.evidence:.1f}): {_gap_line(new_ev)}")
+        ev = new_ev
+        out["evaluations"].append(ev)
+    return out
+
+
+def _pct(frac):
+    return "nothing (no open gap there)" if frac is None else f"{100 * frac:.0f} %"
+
+
+def _stop_reason(passing, threshold) -> str:
+    if not passing:
+        return f"unexplained structure: gaps open, no candidate reaches Delta BIC {threshold:g}"
+    names = ", ".join(f"{c.effect} ({_pct(c.explained)})" for c in passing[:MAX_TRIES])
+    return (
+        "unexplained structure: gaps open, and the candidates with evidence explain less than "
+        f"{100 * EXPLAIN_FRACTION:.0f} % of the misfit of their block: {names}"
+    )
+
+
+def _round(bundle, config, ev, t_cuts, say) -> list:
+    """Every candidate not yet in the model, tried and sorted by evidence (best first)."""
+    cands = []
+    for eff in CANDIDATES:
+        if eff in ev.state.model.effects:
+            continue
+        c = try_candidate(bundle, config, ev, eff, t_cuts)
+        cands.append(c)
+        say(f"  {eff:20s} evidence {c.evidence:12.1f} (dchi2 {c.delta_chi2:.1f}, k {c.k}) {c.note}")
+    cands.sort(key=lambda c: -c.evidence if np.isfinite(c.evidence) else np.inf)
+    return cands
 
 
 def _noise_diagnosis(config):

@@ -120,10 +120,14 @@ def test_hidden_effect_is_named_first_and_gaps_close(effect, hidden_runs):
 @pytest.mark.parametrize("seed", [31, 32])
 def test_nothing_hidden_adds_nothing(seed):
     bundle, _ = _bundle({}, seed)
-    res = discover(bundle, "D2")
+    res = discover(bundle, "D2", rng=np.random.default_rng(seed))
     assert res.effects_added == [], [(s["effect"], s["evidence"]) for s in res.steps]
-    best = max(c.evidence for c in res.candidates[0] if np.isfinite(c.evidence))
-    assert best < DEFAULT_THRESHOLD
+    # every gap inside its bootstrap null band, so no candidate is even tried (the complete
+    # model is kept with probability >= 1 - alpha/2 at the first step)
+    assert res.stop_reason.startswith("every gap inside"), res.stop_reason
+    assert res.candidates == [] and res.unexplained == []
+    gaps = res.evaluations[-1].gaps
+    assert all(g["band"][0] <= g["z"] <= g["band"][1] for g in gaps.values()), gaps
 
 
 def test_two_hidden_effects_are_both_found_through_the_cli(tmp_path):
