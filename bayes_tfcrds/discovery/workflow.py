@@ -24,11 +24,11 @@ import numpy as np
 from scipy import stats
 
 from bayes_tfcrds.fit.extensions import (
-    SHARED,
     TransientSpec,
+    family_member,
+    fit_family,
     fit_spectrum_extended,
     fit_transient_rows,
-    optimise_shared,
     shared_covariance,
 )
 from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
@@ -502,14 +502,15 @@ def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Can
     chi2_t, n_t = ev.block["transients"]
     base = st.spec()
     try:
-        params, res, cov = optimise_shared(
-            effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first, with_cov=with_cov
+        fam = fit_family(
+            effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first, chi2_t, with_cov
         )
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         return _fail(effect, f"fit failed: {exc}")
-    k = len(SHARED[effect]) + (2 * m if effect == "mode_beating" else 0)
+    # the family's chosen member (its order by BIC inside the family), every parameter charged
+    params, res, cov, k = fam.params, fam.result, fam.cov, fam.k
     dchi2 = chi2_t - float(res.chi2.sum())
-    units = {s[0]: s[1] for s in SHARED[effect]}
+    units = {s[0]: s[1] for s in family_member(effect, fam.form)[2]}
     pu = {}
     for i, (name, v) in enumerate(params.items()):
         u = float(np.sqrt(cov[i, i])) if cov is not None else float("nan")
@@ -529,7 +530,10 @@ def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Can
         "transients",
         pu,
         new,
-        "per-transient beating amplitudes counted" if effect == "mode_beating" else "",
+        f"form: {fam.label} (BIC among "
+        + ", ".join(f"{f}: {c + kk * np.log(fam.n):.1f}" for f, c, kk in fam.scores)
+        + ")"
+        + ("; per-transient beating amplitudes counted" if effect == "mode_beating" else ""),
     )
 
 
@@ -790,6 +794,7 @@ def _step_record(best: Candidate, runner, ev: Evaluation, new_ev: Evaluation) ->
         "k": best.k,
         "n": best.n,
         "block": best.block,
+        "note": best.note,
         "params": {k: {"value": v[0], "u": v[1], "unit": v[2]} for k, v in best.params.items()},
         "runner_up": None
         if runner is None

@@ -71,15 +71,131 @@ SHARED = {
     "mode_beating": (("freq_hz", "Hz", 1e4, 2.4e7),),
 }
 SHAPE_EFFECTS = ("second_mode", "extinction_tail", "mode_beating")
+
+#: each transient effect as a family of forms, in order of complexity: (form, label, shared
+#: parameters). The first member is the effect's default (``SHARED``); a higher member adds
+#: parameters to it and is kept only where the information criterion on the transient block
+#: prefers it (:func:`fit_family`), so an effect whose physical form differs from the default can
+#: be absorbed by one candidate instead of leaving a misfit for spurious ones.
+FAMILIES = {
+    "static_nonlinearity": (
+        ("quadratic", "quadratic", SHARED["static_nonlinearity"]),
+        # V' = V + beta V^2/V_ref + gamma V^3/V_ref^2 (a saturating or expanding detector)
+        ("cubic", "cubic", (*SHARED["static_nonlinearity"], ("gamma", "1", -0.05, 0.05))),
+    ),
+    "baseline_drift": (
+        ("linear", "linear drift", SHARED["baseline_drift"]),
+        # drift bending over the record (thermal settling of the detector baseline)
+        (
+            "quadratic",
+            "quadratic drift",
+            (*SHARED["baseline_drift"], ("curvature_v_per_s2", "V/s^2", -4e6, 4e6)),
+        ),
+        # AC coupling / detector recovery: the step at extinction leaves an undershoot
+        # -kappa B exp(-t/tau_hp), proportional to each transient's own amplitude B
+        (
+            "ac_coupling",
+            "AC-coupling undershoot",
+            (("coupling", "1", -1.5, 1.5), ("tau_hp_s", "s", 1e-6, 1e-1)),
+        ),
+    ),
+    "second_mode": (
+        ("ratio", "decay time tau_ratio tau", SHARED["second_mode"]),
+        # 1/tau_2 = 1/(tau_ratio tau) + d: its own mirror losses (d) besides the partial overlap
+        # with the absorber (1/tau_ratio)
+        (
+            "ratio_and_rate",
+            "1/tau_2 = 1/(tau_ratio tau) + d",
+            (*SHARED["second_mode"], ("extra_rate_per_s", "1/s", -2e5, 2e6)),
+        ),
+    ),
+    "extinction_tail": (
+        ("one_exponential", "1 exponential", SHARED["extinction_tail"]),
+        (
+            "two_exponentials",
+            "2 exponentials",
+            (
+                *SHARED["extinction_tail"],
+                ("fraction2", "1", 0.0, 0.3),
+                ("tau2_s", "s", 2e-7, 2e-4),
+            ),
+        ),
+    ),
+    "mode_beating": (
+        ("steady", "steady beat", SHARED["mode_beating"]),
+        # the beat decays faster than the main mode (the beating modes' own losses) and its
+        # frequency drifts linearly (a chirp from the cavity length settling)
+        (
+            "damped",
+            "damped beat",
+            (*SHARED["mode_beating"], ("damping_per_s", "1/s", -2e5, 2e6)),
+        ),
+        (
+            "damped_chirped",
+            "damped, chirped beat",
+            (
+                *SHARED["mode_beating"],
+                ("damping_per_s", "1/s", -2e5, 2e6),
+                ("chirp_hz_per_s", "Hz/s", -1e12, 1e12),
+            ),
+        ),
+    ),
+}
+#: first simplex step of each added parameter (its physically small scale)
+_ADDED_STEP = {
+    "gamma": 1e-3,
+    "curvature_v_per_s2": 1e3,
+    "extra_rate_per_s": 2e4,
+    "damping_per_s": 2e4,
+    "chirp_hz_per_s": 1e10,
+}
+
+
+def family_member(name, form=None):
+    """(form, label, shared parameters) of effect ``name``'s member ``form`` (None: default)."""
+    members = FAMILIES[name]
+    if form is None:
+        return members[0]
+    for mem in members:
+        if mem[0] == form:
+            return mem
+    raise ValueError(f"{name} has no form {form!r}; choose from {[m[0] for m in members]}")
+
+
+def form_of(name, params) -> str:
+    """The member of effect ``name`` whose parameters are exactly the keys of ``params``."""
+    keys = tuple(params)
+    for form, _, pars in FAMILIES[name]:
+        if tuple(p[0] for p in pars) == keys:
+            return form
+    raise ValueError(f"parameters {list(keys)} match no form of {name}")
+
+
 SPECTRUM_EXTRAS = ("etalon", "neighbour_line")
 
 
-def invert_nonlinearity(v, beta):
-    """V from V' = V + beta V^2 / V_ref (V), the root that is continuous at beta = 0."""
+def invert_nonlinearity(v, beta, gamma=0.0, newton_steps=3):
+    """V from V' = V + beta V^2/V_ref + gamma V^3/V_ref^2 (V), the root continuous at 0.
+
+    The quadratic's root is exact; a cubic term is then taken by Newton steps from it (for
+    |gamma V^2| << 1 each step squares the relative error, 3 steps reach machine precision).
+    """
     v = np.asarray(v, float)
-    if beta == 0.0:
+    if beta == 0.0 and gamma == 0.0:
         return v
-    return 2.0 * v / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * beta * v / V_REF, 1e-12)))
+    x = 2.0 * v / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * beta * v / V_REF, 1e-12)))
+    if gamma == 0.0:
+        return x
+    for _ in range(newton_steps):
+        u = x / V_REF
+        x = x - (x + beta * x * u + gamma * x * u * u - v) / nonlinearity_slope(x, beta, gamma)
+    return x
+
+
+def nonlinearity_slope(v, beta, gamma=0.0):
+    """dV'/dV = 1 + 2 beta V/V_ref + 3 gamma V^2/V_ref^2 at the true voltage V."""
+    u = np.asarray(v, float) / V_REF
+    return 1.0 + 2.0 * beta * u + 3.0 * gamma * u * u
 
 
 # --------------------------------------------------------------------------- transient model
@@ -102,7 +218,7 @@ class TransientSpec:
         return 2 + (2 if self.has("mode_beating") else 0)
 
     def n_shared(self) -> int:
-        return sum(len(SHARED[k]) for k in self.shared)
+        return sum(len(v) for v in self.shared.values())
 
 
 class _Columns:
@@ -148,22 +264,53 @@ class _Columns:
 
     def __call__(self, tau, rows):
         sh = self.spec.shared
-        g = self.main(tau, rows)
+        g = g_main = self.main(tau, rows)
         if "second_mode" in sh:
-            f, r = sh["second_mode"]["fraction"], sh["second_mode"]["tau_ratio"]
-            g = (1.0 - f) * g + f * self.main(r * tau, rows)
+            p = sh["second_mode"]
+            f, r = p["fraction"], p["tau_ratio"]
+            if "extra_rate_per_s" in p:
+                # 1/tau_2 = 1/(r tau) + d, kept positive (a mode cannot gain)
+                tau2 = 1.0 / np.maximum(1.0 / (r * tau) + p["extra_rate_per_s"], 1e-3 / tau)
+            else:
+                tau2 = r * tau
+            g = (1.0 - f) * g + f * self.main(tau2, rows)
         if "extinction_tail" in sh:
-            f, tx = sh["extinction_tail"]["fraction"], sh["extinction_tail"]["tau_s"]
-            d = 1.0 / tau - 1.0 / tx
-            # keep away from tau = tau_x, where the coefficient's pole cancels the difference's zero
-            d = np.where(np.abs(tau * d) < 1e-4, 1e-4 / tau, d)
-            txe = 1.0 / (1.0 / tau - d)
-            g = g + (f / (tau * d))[:, None] * (self.main(txe, rows) - self.main(tau, rows))
+            p = sh["extinction_tail"]
+            g0 = g_main
+            for fk, tk in (("fraction", "tau_s"), ("fraction2", "tau2_s")):
+                if fk not in p:
+                    continue
+                f, tx = p[fk], p[tk]
+                d = 1.0 / tau - 1.0 / tx
+                # keep away from tau = tau_x, where the coefficient's pole cancels the difference's
+                # zero
+                d = np.where(np.abs(tau * d) < 1e-4, 1e-4 / tau, d)
+                txe = 1.0 / (1.0 / tau - d)
+                g = g + (f / (tau * d))[:, None] * (self.main(txe, rows) - g0)
+        if "baseline_drift" in sh and "coupling" in sh["baseline_drift"]:
+            p = sh["baseline_drift"]
+            kap, thp = p["coupling"], p["tau_hp_s"]
+            g = g - kap * self.filtered(lambda t, ta: np.exp(-t / thp) + 0.0 * ta, tau)
         cols = [np.ones_like(g), g]
         if "mode_beating" in sh:
-            w = 2 * np.pi * sh["mode_beating"]["freq_hz"]
-            cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.cos(w * t), tau))
-            cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.sin(w * t), tau))
+            p = sh["mode_beating"]
+            w = 2 * np.pi * p["freq_hz"]
+            gam = p.get("damping_per_s", 0.0)
+            chirp = np.pi * p.get("chirp_hz_per_s", 0.0)
+            if gam == 0.0 and chirp == 0.0:
+                cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.cos(w * t), tau))
+                cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.sin(w * t), tau))
+            else:
+
+                def env(t, ta):
+                    return np.exp(-t / ta - gam * t)
+
+                cols.append(
+                    self.filtered(lambda t, ta: env(t, ta) * np.cos((w + chirp * t) * t), tau)
+                )
+                cols.append(
+                    self.filtered(lambda t, ta: env(t, ta) * np.sin((w + chirp * t) * t), tau)
+                )
         out = np.stack(cols, axis=1)
         out *= self.mask[rows][:, None, :]
         return out
@@ -250,17 +397,24 @@ def fit_transient_rows(
     noise2 = np.broadcast_to(noise_rows[:, None], y.shape)
     if "static_nonlinearity" in sh:
         beta = sh["static_nonlinearity"]["beta"]
-        y = invert_nonlinearity(y, beta)
+        gamma = sh["static_nonlinearity"].get("gamma", 0.0)
+        y = invert_nonlinearity(y, beta, gamma)
         # the noise is mapped back too, by 1/(dV'/dV): without it the chi2 of the mapped data
         # would drop for beta > 0 merely because the mapping shrinks the noise
-        noise2 = noise2 / np.abs(1.0 + 2.0 * beta * y / V_REF)
-    if "baseline_drift" in sh:
+        if gamma == 0.0:
+            noise2 = noise2 / np.abs(1.0 + 2.0 * beta * y / V_REF)
+        else:
+            noise2 = noise2 / np.abs(nonlinearity_slope(y, beta, gamma))
+    if "baseline_drift" in sh and "slope_v_per_s" in sh["baseline_drift"]:
         y = y - sh["baseline_drift"]["slope_v_per_s"] * (t - t[0])[None, :]
+        if "curvature_v_per_s2" in sh["baseline_drift"]:
+            y = y - sh["baseline_drift"]["curvature_v_per_s2"] * ((t - t[0]) ** 2)[None, :]
     dt = t[1] - t[0]
     first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut_rows])
     mask = np.arange(t.size)[None, :] >= first[:, None]
     wm = mask / noise2**2
-    if not any(k in sh for k in SHAPE_EFFECTS):
+    shaped = any(k in sh for k in SHAPE_EFFECTS) or "coupling" in sh.get("baseline_drift", {})
+    if not shaped:
         fits = fit_transients(
             t,
             y,
@@ -335,7 +489,7 @@ def bin_ringdowns(rd, k: int):
     )
 
 
-def _search_two_exponential(name, chi2, lo, hi) -> np.ndarray:
+def _search_two_exponential(name, chi2, lo, hi, f_starts=(0.0, 2e-3, 4e-3), f_range=None):
     """(fraction, time parameter) of a weak second exponential minimising ``chi2``.
 
     The chi2 surface has a long curved valley (a larger fraction with a decay time closer to tau
@@ -349,8 +503,8 @@ def _search_two_exponential(name, chi2, lo, hi) -> np.ndarray:
         # at fixed time parameter the model is nearly linear in the fraction, so chi2(f) is
         # nearly a parabola: two parabolic steps from f = 0 locate its minimum
         if g not in inner:
-            fmax = hi[0] / 3
-            pts = {0.0: chi2([0.0, g]), 2e-3: chi2([2e-3, g]), 4e-3: chi2([4e-3, g])}
+            fmin, fmax = f_range if f_range is not None else (0.0, hi[0] / 3)
+            pts = {f: chi2([f, g]) for f in f_starts}
             for _ in range(2):
                 f3 = sorted(pts, key=lambda f: pts[f])[:3]
                 fa, fb, fc = sorted(f3)
@@ -359,7 +513,7 @@ def _search_two_exponential(name, chi2, lo, hi) -> np.ndarray:
                 if den == 0:
                     break
                 fn = fb - 0.5 * ((fb - fa) ** 2 * (cb - cc) - (fb - fc) ** 2 * (cb - ca)) / den
-                fn = float(np.clip(fn, 0.0, fmax)) if np.isfinite(fn) else 0.0
+                fn = float(np.clip(fn, fmin, fmax)) if np.isfinite(fn) else 0.0
                 if any(abs(fn - f) < 1e-7 for f in pts):
                     break
                 pts[fn] = chi2([fn, g])
@@ -369,6 +523,8 @@ def _search_two_exponential(name, chi2, lo, hi) -> np.ndarray:
 
     if name == "second_mode":
         to_g, grid = (lambda z: z), np.array([0.2, 0.4, 0.6, 0.75, 0.9])
+    elif name == "ac_coupling":
+        to_g, grid = np.exp, np.log([3e-6, 1e-5, 3e-5, 1e-4, 1e-3, 1e-2])
     else:
         to_g, grid = np.exp, np.log([1e-6, 3e-6, 1e-5, 3e-5, 1e-4])
     vals = [profile_f(float(to_g(z))) for z in grid]
@@ -395,6 +551,8 @@ def optimise_shared(
     resid_norm=None,
     search_bin: int = 8,
     with_cov: bool = True,
+    form: str | None = None,
+    start: dict | None = None,
 ):
     """Fit the shared parameters of extension ``name`` on the rows' total chi2.
 
@@ -402,13 +560,20 @@ def optimise_shared(
     Starting points come from the data (the residual periodogram for the beating frequency)
     and, for two-parameter extensions, a small grid, since the chi2 surface of a weak second
     exponential is flat along a valley and has more than one local minimum.
+
+    ``form`` picks a member of the effect's family (:data:`FAMILIES`; None: the default). A
+    higher member that extends the default starts from ``start``, the default member's fitted
+    parameters, with its added parameters at 0 (fitted by :func:`_fit_member`).
     """
     full = ringdowns
     if search_bin > 1 and name != "mode_beating":
         ringdowns = bin_ringdowns(ringdowns, search_bin)
-    names = [s[0] for s in SHARED[name]]
-    lo = np.array([s[2] for s in SHARED[name]])
-    hi = np.array([s[3] for s in SHARED[name]])
+    form = family_member(name)[0] if form is None else form
+    default = form == family_member(name)[0]
+    pars = family_member(name, form)[2]
+    names = [s[0] for s in pars]
+    lo = np.array([s[2] for s in pars])
+    hi = np.array([s[3] for s in pars])
     cache = {}
     warm = {"tau": np.asarray(tau_start_s, float)}
 
@@ -422,7 +587,7 @@ def optimise_shared(
 
     def key_of(x):
         x = np.clip(np.asarray(x, float), lo, hi)
-        if name in ("second_mode", "extinction_tail") and x[0] == 0.0:
+        if default and name in ("second_mode", "extinction_tail") and x[0] == 0.0:
             x = np.array([0.0, lo[1]])  # no second exponential: the time parameter is moot
         return x, tuple(np.round(x, 14))
 
@@ -435,7 +600,9 @@ def optimise_shared(
                 warm["tau"] = res.tau_s
         return cache[key][0]
 
-    if name == "static_nonlinearity":
+    if not default:
+        x = _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm)
+    elif name == "static_nonlinearity":
         sol = optimize.minimize_scalar(
             lambda b: chi2([b]), bounds=(lo[0], hi[0]), method="bounded", options={"xatol": 1e-7}
         )
@@ -464,7 +631,10 @@ def optimise_shared(
         ringdowns = full
         cache.clear()
         warm["tau"] = np.asarray(tau_start_s, float)
-        if name in ("static_nonlinearity", "baseline_drift"):
+        if not default and form in ("cubic", "quadratic"):
+            # fits without a shape term are cheap: polish on the full record
+            x = _nelder_mead(chi2, x, _member_steps(names, x), lo, hi, 30 * x.size)
+        elif name in ("static_nonlinearity", "baseline_drift") and default:
             # one-parameter searches are cheap: polish on the full record
             w = 0.05 * (np.abs(x[0]) + (1e-4 if name == "static_nonlinearity" else 0.05))
             x = np.array(
@@ -483,11 +653,148 @@ def optimise_shared(
     return dict(zip(names, map(float, x))), res, cov
 
 
+def _member_steps(names, x):
+    """First simplex steps: 20 % of each fitted value, or the added parameter's small scale."""
+    return np.array(
+        [
+            max(0.2 * abs(v), _ADDED_STEP.get(n, 0.0), 1e-6 * abs(v) + 1e-12)
+            for n, v in zip(names, x)
+        ]
+    )
+
+
+def _nelder_mead(chi2, x0, steps, lo, hi, max_fev):
+    """Bounded Nelder-Mead from x0 with a simplex of the given steps (a local polish)."""
+    x0 = np.clip(np.asarray(x0, float), lo, hi)
+    simplex = np.vstack([x0, x0 + np.diag(steps)])
+    simplex = np.clip(simplex, lo, hi)
+    sol = optimize.minimize(
+        lambda x: chi2(np.clip(x, lo, hi)),
+        x0,
+        method="Nelder-Mead",
+        options={"initial_simplex": simplex, "maxfev": max_fev, "xatol": 1e-9, "fatol": 1e-3},
+    )
+    x = np.clip(sol.x, lo, hi)
+    return x if chi2(x) <= chi2(x0) else x0
+
+
+def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
+    """Shared parameters of a higher family member (see :data:`FAMILIES`).
+
+    Members extending the default start from its fit (``start``) with the added parameters at 0;
+    a second exponential of the tail is searched like the first (fraction profiled inside a
+    search over log tau), then the first re-searched with the second held; the AC-coupling
+    undershoot (coupling kappa, tau_hp) is searched the same way (kappa of either sign).
+    """
+    if name == "baseline_drift" and form == "ac_coupling":
+        return _search_two_exponential(
+            "ac_coupling", chi2, lo, hi, f_starts=(-2e-3, 0.0, 2e-3), f_range=(lo[0], hi[0])
+        )
+    if start is None:
+        raise ValueError(f"the {form} form of {name} starts from the default member's fit")
+    x0 = np.array([start.get(n, 0.0) for n in names], float)
+    if name == "extinction_tail":
+        x = x0.copy()
+        x[2:] = _search_two_exponential(
+            name, lambda z: chi2([x[0], x[1], z[0], z[1]]), lo[2:], hi[2:]
+        )
+        x[:2] = _search_two_exponential(
+            name, lambda z: chi2([z[0], z[1], x[2], x[3]]), lo[:2], hi[:2]
+        )
+        return x
+    steps = _member_steps(names, x0)
+    if name == "mode_beating":
+        dt = float(ringdowns.dt_s)
+        n_eff = resid_norm.shape[-1] if resid_norm is not None else ringdowns.n_samples
+        steps[0] = 0.1 / (n_eff * dt)  # a tenth of a periodogram bin
+    return _nelder_mead(chi2, x0, steps, lo, hi, 40 * x0.size)
+
+
+@dataclass(frozen=True)
+class FamilyFit:
+    """The member of an effect's family the information criterion chose, and every member's score.
+
+    ``scores`` holds (form, chi2, k) for each member fitted, k counting every parameter the member
+    adds to the model (shared and per-transient); BIC = chi2 + k ln n on the transient block.
+    """
+
+    name: str
+    form: str
+    label: str
+    params: dict
+    result: TransientResult
+    cov: np.ndarray | None
+    k: int
+    n: int
+    scores: tuple
+
+
+def fit_family(
+    name,
+    ringdowns,
+    t_cut_rows,
+    rows_of,
+    base: TransientSpec,
+    tau_start_s,
+    resid_norm=None,
+    chi2_before=None,
+    with_cov: bool = False,
+    search_bin: int = 8,
+) -> FamilyFit:
+    """Fit effect ``name``'s family member by member and keep the lowest BIC (chi2 + k ln n).
+
+    Higher members are fitted only if the default member already beats the model without the
+    effect (``chi2_before``; Delta BIC > 0): where the effect's simplest form is not supported,
+    more flexible forms would only chase noise and cost fits. The covariance (``with_cov``) is
+    computed for the chosen member only.
+    """
+    n_rows = len(rows_of)
+    per_row = 2 * n_rows if name == "mode_beating" else 0
+    scores, fits = [], {}
+    start = None
+    for form, _, pars in FAMILIES[name]:
+        params, res, _ = optimise_shared(
+            name,
+            ringdowns,
+            t_cut_rows,
+            rows_of,
+            base,
+            tau_start_s,
+            resid_norm,
+            search_bin=search_bin,
+            with_cov=False,
+            form=form,
+            start=start,
+        )
+        k = len(pars) + per_row
+        n = int(res.n_used.sum())
+        chi2 = float(res.chi2.sum())
+        scores.append((form, chi2, k))
+        fits[form] = (params, res)
+        if start is None:
+            start = params
+            if chi2_before is not None and chi2_before - chi2 - k * np.log(n) <= 0:
+                break
+    n = int(fits[scores[0][0]][1].n_used.sum())
+    best = min(scores, key=lambda s: s[1] + s[2] * np.log(n))
+    params, res = fits[best[0]]
+    cov = None
+    if with_cov:
+        cov = shared_covariance(name, ringdowns, t_cut_rows, rows_of, base, params, res.tau_s)
+    return FamilyFit(
+        name, best[0], family_member(name, best[0])[1], params, res, cov, best[2], n, tuple(scores)
+    )
+
+
 def shared_covariance(
     name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, params: dict, tau_start_s
 ):
-    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2)."""
-    names = [s[0] for s in SHARED[name]]
+    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2).
+
+    The parameters' names say which member of the effect's family they belong to.
+    """
+    pars = family_member(name, form_of(name, params))[2]
+    names = [s[0] for s in pars]
     warm = {"tau": np.asarray(tau_start_s, float)}
 
     def chi2(x):
@@ -500,8 +807,8 @@ def shared_covariance(
         res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec, warm["tau"])
         return float(res.chi2.sum())
 
-    lo = np.array([s[2] for s in SHARED[name]])
-    hi = np.array([s[3] for s in SHARED[name]])
+    lo = np.array([s[2] for s in pars])
+    hi = np.array([s[3] for s in pars])
     return _shared_covariance(chi2, np.array([params[n] for n in names], float), lo, hi)
 
 
