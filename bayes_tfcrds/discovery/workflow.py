@@ -24,10 +24,13 @@ import numpy as np
 from scipy import stats
 
 from bayes_tfcrds.fit.extensions import (
+    SPECTRUM_DEFAULT_LABEL,
+    SPECTRUM_FORMS,
     TransientSpec,
     family_member,
     fit_family,
     fit_spectrum_extended,
+    fit_spectrum_family,
     fit_transient_rows,
     shared_covariance,
 )
@@ -70,11 +73,17 @@ class ExperimentModel:
     """Which canonical effects the analysis model contains; the analysis choices follow."""
 
     effects: frozenset = frozenset()
+    #: higher members of spectrum-level families in use (keys of SPECTRUM_FORMS, e.g.
+    #: ``etalon_harmonic``); transient-level forms live in the shared parameters
+    forms: frozenset = frozenset()
 
     def __post_init__(self):
         bad = set(self.effects) - set(CANDIDATES)
         if bad:
             raise ValueError(f"unknown effect(s) {sorted(bad)}; choose from {list(CANDIDATES)}")
+        bad_forms = {f for f in self.forms if SPECTRUM_FORMS.get(f, ("",))[0] not in self.effects}
+        if bad_forms:
+            raise ValueError(f"form(s) {sorted(bad_forms)} need their effect in the model")
         if "window_history" in self.effects and "transfer_function" not in self.effects:
             raise ValueError(
                 "window_history (letter -> extinction window) needs transfer_function in the model"
@@ -102,10 +111,12 @@ class ExperimentModel:
 
     @property
     def spectrum_extras(self) -> tuple:
-        return tuple(e for e in ("etalon", "neighbour_line") if e in self.effects)
+        return tuple(e for e in ("etalon", "neighbour_line") if e in self.effects) + tuple(
+            sorted(self.forms)
+        )
 
-    def plus(self, effect) -> ExperimentModel:
-        return ExperimentModel(self.effects | {effect})
+    def plus(self, effect, form=None) -> ExperimentModel:
+        return ExperimentModel(self.effects | {effect}, self.forms | ({form} if form else set()))
 
     def label(self) -> str:
         return "+".join(
@@ -118,6 +129,7 @@ class ExperimentModel:
                 ),
             ]
             + (["extinction-window"] if self.window == "extinction" else [])
+            + sorted(self.forms)
         )
 
 
@@ -243,6 +255,9 @@ def fit_cmds(bundle, config, model: ExperimentModel, line):
             "neighbour_offset_hz": line.value("neighbour_offset_hz"),
             "neighbour_ratio": line.value("neighbour_ratio"),
         }
+        if "neighbour_width" in model.forms:
+            extras += ("neighbour_width",)
+            fixed["neighbour_width_scale"] = line.value("neighbour_width_scale")
     return fit_spectrum_extended(
         "dispersion",
         cm.nu_hz,
@@ -620,8 +635,29 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
     new_model = model.plus(effect)
     lf_old = ev.lines[0]
     nu = np.asarray(rd.nu_hz, float)[ev.good]
+    note = ""
     try:
-        lf = fit_lines(bundle, config, new_model, nu, ev.tau[:, 0], ev.tau_u[:, 0])
+        if effect in SPECTRUM_DEFAULT_LABEL:
+            # a family (etalon, neighbour_line): the member with the lowest BIC on the spectrum
+            a, ua = absorption_from_tau(ev.tau[:, 0], ev.tau_u[:, 0])
+            fam = fit_spectrum_family(
+                effect,
+                nu,
+                a,
+                ua,
+                model.profile,
+                doppler_of(bundle.sample),
+                bundle.sample.nu0_hz,
+                model.spectrum_extras,
+                lf_old.chi2,
+            )
+            lf, new_model = fam.fit, model.plus(effect, fam.form)
+            note = f"form: {fam.label} (BIC among " + ", ".join(
+                f"{lab}: {c + kk * np.log(lf.n):.1f}" for lab, c, kk in fam.scores
+            )
+            note += ")"
+        else:
+            lf = fit_lines(bundle, config, new_model, nu, ev.tau[:, 0], ev.tau_u[:, 0])
     except (ValueError, np.linalg.LinAlgError) as exc:
         return _fail(effect, f"fit failed: {exc}")
     dchi2 = lf_old.chi2 - lf.chi2
@@ -635,10 +671,13 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
         "etalon_phase_rad": "rad",
         "neighbour_offset_hz": "Hz",
         "neighbour_ratio": "1",
+        "etalon2_amplitude_per_m": "1/m",
+        "etalon2_phase_rad": "rad",
+        "neighbour_width_scale": "1",
     }
     pu = {n: (lf.value(n), lf.stderr(n), units.get(n, "")) for n in new_names}
     new = ModelState(new_model, dict(st.shared), dict(st.shared_u), st.calibration)
-    return Candidate(effect, dchi2 - k * np.log(lf.n), dchi2, k, lf.n, "spectrum", pu, new)
+    return Candidate(effect, dchi2 - k * np.log(lf.n), dchi2, k, lf.n, "spectrum", pu, new, note)
 
 
 def try_candidate(

@@ -81,7 +81,7 @@ FAMILIES = {
     "static_nonlinearity": (
         ("quadratic", "quadratic", SHARED["static_nonlinearity"]),
         # V' = V + beta V^2/V_ref + gamma V^3/V_ref^2 (a saturating or expanding detector)
-        ("cubic", "cubic", (*SHARED["static_nonlinearity"], ("gamma", "1", -0.05, 0.05))),
+        ("cubic", "cubic", (*SHARED["static_nonlinearity"], ("gamma", "1", -0.2, 0.2))),
     ),
     "baseline_drift": (
         ("linear", "linear drift", SHARED["baseline_drift"]),
@@ -89,24 +89,26 @@ FAMILIES = {
         (
             "quadratic",
             "quadratic drift",
-            (*SHARED["baseline_drift"], ("curvature_v_per_s2", "V/s^2", -4e6, 4e6)),
+            (*SHARED["baseline_drift"], ("curvature_v_per_s2", "V/s^2", -2e7, 2e7)),
         ),
         # AC coupling / detector recovery: the step at extinction leaves an undershoot
-        # -kappa B exp(-t/tau_hp), proportional to each transient's own amplitude B
-        (
-            "ac_coupling",
-            "AC-coupling undershoot",
-            (("coupling", "1", -1.5, 1.5), ("tau_hp_s", "s", 1e-6, 1e-1)),
-        ),
+        # -kappa B exp(-t/tau_hp), proportional to each transient's own amplitude B: one column
+        # exp(-t/tau_hp) per transient (its amplitude free, so it is charged per transient) with
+        # one shared time constant
+        ("ac_coupling", "AC-coupling undershoot", (("tau_hp_s", "s", 1e-6, 1e-2),)),
     ),
     "second_mode": (
         ("ratio", "decay time tau_ratio tau", SHARED["second_mode"]),
-        # 1/tau_2 = 1/(tau_ratio tau) + d: its own mirror losses (d) besides the partial overlap
-        # with the absorber (1/tau_ratio)
+        # 1/tau_2 = r/tau + d: partial overlap r with the absorber (the mode sees r alpha c) and
+        # its own mirror losses (d, relative to r times the main mode's)
         (
-            "ratio_and_rate",
-            "1/tau_2 = 1/(tau_ratio tau) + d",
-            (*SHARED["second_mode"], ("extra_rate_per_s", "1/s", -2e5, 2e6)),
+            "overlap_and_rate",
+            "1/tau_2 = r/tau + d",
+            (
+                ("fraction", "1", 0.0, 0.3),
+                ("overlap", "1", 0.0, 25.0),
+                ("extra_rate_per_s", "1/s", -1e6, 2e6),
+            ),
         ),
     ),
     "extinction_tail": (
@@ -144,8 +146,9 @@ FAMILIES = {
 #: first simplex step of each added parameter (its physically small scale)
 _ADDED_STEP = {
     "gamma": 1e-3,
-    "curvature_v_per_s2": 1e3,
+    "curvature_v_per_s2": 2e5,
     "extra_rate_per_s": 2e4,
+    "overlap": 0.1,
     "damping_per_s": 2e4,
     "chirp_hz_per_s": 1e10,
 }
@@ -162,6 +165,13 @@ def family_member(name, form=None):
     raise ValueError(f"{name} has no form {form!r}; choose from {[m[0] for m in members]}")
 
 
+def member_row_params(name, form) -> int:
+    """Linear parameters a member adds to every transient (charged once per transient)."""
+    if name == "mode_beating":
+        return 2
+    return 1 if (name, form) == ("baseline_drift", "ac_coupling") else 0
+
+
 def form_of(name, params) -> str:
     """The member of effect ``name`` whose parameters are exactly the keys of ``params``."""
     keys = tuple(params)
@@ -172,6 +182,19 @@ def form_of(name, params) -> str:
 
 
 SPECTRUM_EXTRAS = ("etalon", "neighbour_line")
+#: higher members of the spectrum-level families: the extra each one adds on top of its effect
+#: (label, parameters). ``etalon_harmonic``: the fringe's second harmonic (an Airy fringe of a
+#: finesse above ~1 is not a sinusoid); ``neighbour_width``: the neighbour's widths (Doppler and
+#: collisional) scaled by a free factor (another molecule, mass or broadening).
+SPECTRUM_FORMS = {
+    "etalon_harmonic": (
+        "etalon",
+        "sinusoid + 2nd harmonic",
+        ("etalon2_amplitude_per_m", "etalon2_phase_rad"),
+    ),
+    "neighbour_width": ("neighbour_line", "free width scale", ("neighbour_width_scale",)),
+}
+SPECTRUM_DEFAULT_LABEL = {"etalon": "sinusoid", "neighbour_line": "same widths"}
 
 
 def invert_nonlinearity(v, beta, gamma=0.0, newton_steps=3):
@@ -214,8 +237,12 @@ class TransientSpec:
         return name in self.shared
 
     def n_row_params(self) -> int:
-        """Linear parameters per transient besides tau: b, B and the beating amplitudes."""
-        return 2 + (2 if self.has("mode_beating") else 0)
+        """Linear parameters per transient besides tau: b, B, beating and undershoot amplitudes."""
+        return (
+            2
+            + (2 if self.has("mode_beating") else 0)
+            + (1 if "tau_hp_s" in self.shared.get("baseline_drift", {}) else 0)
+        )
 
     def n_shared(self) -> int:
         return sum(len(v) for v in self.shared.values())
@@ -267,12 +294,12 @@ class _Columns:
         g = g_main = self.main(tau, rows)
         if "second_mode" in sh:
             p = sh["second_mode"]
-            f, r = p["fraction"], p["tau_ratio"]
-            if "extra_rate_per_s" in p:
-                # 1/tau_2 = 1/(r tau) + d, kept positive (a mode cannot gain)
-                tau2 = 1.0 / np.maximum(1.0 / (r * tau) + p["extra_rate_per_s"], 1e-3 / tau)
+            f = p["fraction"]
+            if "overlap" in p:
+                # 1/tau_2 = r/tau + d, kept positive (tau_2 <= 100 tau: a mode cannot gain)
+                tau2 = 1.0 / np.maximum(p["overlap"] / tau + p["extra_rate_per_s"], 1e-2 / tau)
             else:
-                tau2 = r * tau
+                tau2 = p["tau_ratio"] * tau
             g = (1.0 - f) * g + f * self.main(tau2, rows)
         if "extinction_tail" in sh:
             p = sh["extinction_tail"]
@@ -287,10 +314,6 @@ class _Columns:
                 d = np.where(np.abs(tau * d) < 1e-4, 1e-4 / tau, d)
                 txe = 1.0 / (1.0 / tau - d)
                 g = g + (f / (tau * d))[:, None] * (self.main(txe, rows) - g0)
-        if "baseline_drift" in sh and "coupling" in sh["baseline_drift"]:
-            p = sh["baseline_drift"]
-            kap, thp = p["coupling"], p["tau_hp_s"]
-            g = g - kap * self.filtered(lambda t, ta: np.exp(-t / thp) + 0.0 * ta, tau)
         cols = [np.ones_like(g), g]
         if "mode_beating" in sh:
             p = sh["mode_beating"]
@@ -311,6 +334,9 @@ class _Columns:
                 cols.append(
                     self.filtered(lambda t, ta: env(t, ta) * np.sin((w + chirp * t) * t), tau)
                 )
+        if "tau_hp_s" in sh.get("baseline_drift", {}):
+            thp = sh["baseline_drift"]["tau_hp_s"]
+            cols.append(self.filtered(lambda t, ta: np.exp(-t / thp) + 0.0 * ta, tau))
         out = np.stack(cols, axis=1)
         out *= self.mask[rows][:, None, :]
         return out
@@ -413,7 +439,7 @@ def fit_transient_rows(
     first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut_rows])
     mask = np.arange(t.size)[None, :] >= first[:, None]
     wm = mask / noise2**2
-    shaped = any(k in sh for k in SHAPE_EFFECTS) or "coupling" in sh.get("baseline_drift", {})
+    shaped = any(k in sh for k in SHAPE_EFFECTS) or "tau_hp_s" in sh.get("baseline_drift", {})
     if not shaped:
         fits = fit_transients(
             t,
@@ -489,7 +515,7 @@ def bin_ringdowns(rd, k: int):
     )
 
 
-def _search_two_exponential(name, chi2, lo, hi, f_starts=(0.0, 2e-3, 4e-3), f_range=None):
+def _search_two_exponential(name, chi2, lo, hi) -> np.ndarray:
     """(fraction, time parameter) of a weak second exponential minimising ``chi2``.
 
     The chi2 surface has a long curved valley (a larger fraction with a decay time closer to tau
@@ -503,8 +529,8 @@ def _search_two_exponential(name, chi2, lo, hi, f_starts=(0.0, 2e-3, 4e-3), f_ra
         # at fixed time parameter the model is nearly linear in the fraction, so chi2(f) is
         # nearly a parabola: two parabolic steps from f = 0 locate its minimum
         if g not in inner:
-            fmin, fmax = f_range if f_range is not None else (0.0, hi[0] / 3)
-            pts = {f: chi2([f, g]) for f in f_starts}
+            fmax = hi[0] / 3
+            pts = {0.0: chi2([0.0, g]), 2e-3: chi2([2e-3, g]), 4e-3: chi2([4e-3, g])}
             for _ in range(2):
                 f3 = sorted(pts, key=lambda f: pts[f])[:3]
                 fa, fb, fc = sorted(f3)
@@ -513,7 +539,7 @@ def _search_two_exponential(name, chi2, lo, hi, f_starts=(0.0, 2e-3, 4e-3), f_ra
                 if den == 0:
                     break
                 fn = fb - 0.5 * ((fb - fa) ** 2 * (cb - cc) - (fb - fc) ** 2 * (cb - ca)) / den
-                fn = float(np.clip(fn, fmin, fmax)) if np.isfinite(fn) else 0.0
+                fn = float(np.clip(fn, 0.0, fmax)) if np.isfinite(fn) else 0.0
                 if any(abs(fn - f) < 1e-7 for f in pts):
                     break
                 pts[fn] = chi2([fn, g])
@@ -523,8 +549,6 @@ def _search_two_exponential(name, chi2, lo, hi, f_starts=(0.0, 2e-3, 4e-3), f_ra
 
     if name == "second_mode":
         to_g, grid = (lambda z: z), np.array([0.2, 0.4, 0.6, 0.75, 0.9])
-    elif name == "ac_coupling":
-        to_g, grid = np.exp, np.log([3e-6, 1e-5, 3e-5, 1e-4, 1e-3, 1e-2])
     else:
         to_g, grid = np.exp, np.log([1e-6, 3e-6, 1e-5, 3e-5, 1e-4])
     vals = [profile_f(float(to_g(z))) for z in grid]
@@ -633,7 +657,7 @@ def optimise_shared(
         warm["tau"] = np.asarray(tau_start_s, float)
         if not default and form in ("cubic", "quadratic"):
             # fits without a shape term are cheap: polish on the full record
-            x = _nelder_mead(chi2, x, _member_steps(names, x), lo, hi, 30 * x.size)
+            x = _newton_steps(chi2, x, 0.1 * _member_steps(names, x), lo, hi)
         elif name in ("static_nonlinearity", "baseline_drift") and default:
             # one-parameter searches are cheap: polish on the full record
             w = 0.05 * (np.abs(x[0]) + (1e-4 if name == "static_nonlinearity" else 0.05))
@@ -664,18 +688,66 @@ def _member_steps(names, x):
 
 
 def _nelder_mead(chi2, x0, steps, lo, hi, max_fev):
-    """Bounded Nelder-Mead from x0 with a simplex of the given steps (a local polish)."""
+    """Bounded Nelder-Mead from x0 with a simplex of the given steps (a local polish).
+
+    A step that would leave the bounds is taken the other way, so the simplex starts inside
+    them (a clipped vertex would collapse it onto the bound).
+    """
     x0 = np.clip(np.asarray(x0, float), lo, hi)
-    simplex = np.vstack([x0, x0 + np.diag(steps)])
-    simplex = np.clip(simplex, lo, hi)
+    steps = np.where(x0 + steps > hi, -steps, steps)
+    simplex = np.clip(np.vstack([x0, x0 + np.diag(steps)]), lo, hi)
     sol = optimize.minimize(
         lambda x: chi2(np.clip(x, lo, hi)),
         x0,
         method="Nelder-Mead",
+        bounds=list(zip(lo, hi)),
         options={"initial_simplex": simplex, "maxfev": max_fev, "xatol": 1e-9, "fatol": 1e-3},
     )
     x = np.clip(sol.x, lo, hi)
     return x if chi2(x) <= chi2(x0) else x0
+
+
+def _newton_steps(chi2, x0, steps, lo, hi, n_iter=4):
+    """Newton steps on chi2 from x0 with its gradient and Hessian by central differences.
+
+    For members whose parameters act (nearly) linearly on the data (a polynomial detector
+    response, a polynomial drift) chi2 is nearly quadratic in them, and a correlated valley that
+    a simplex crawls along is crossed in one or two steps. A step that does not lower chi2 ends
+    the iteration.
+    """
+    x = np.clip(np.asarray(x0, float), lo, hi)
+    f = chi2(x)
+    for _ in range(n_iter):
+        # the stencil's centre kept a step inside the bounds (the chi2 is clipped at them)
+        xc = np.clip(x, lo + steps, hi - steps)
+        if not np.array_equal(xc, x):
+            x, f = xc, chi2(xc)
+        k = x.size
+        g, hess = np.empty(k), np.empty((k, k))
+        for i in range(k):
+            ei = np.zeros(k)
+            ei[i] = steps[i]
+            fp, fm = chi2(x + ei), chi2(x - ei)
+            g[i] = (fp - fm) / (2 * steps[i])
+            hess[i, i] = (fp - 2 * f + fm) / steps[i] ** 2
+            for j in range(i):
+                ej = np.zeros(k)
+                ej[j] = steps[j]
+                hess[i, j] = hess[j, i] = (
+                    chi2(x + ei + ej) - chi2(x + ei - ej) - chi2(x - ei + ej) + chi2(x - ei - ej)
+                ) / (4 * steps[i] * steps[j])
+        try:
+            x_new = np.clip(x - np.linalg.solve(hess, g), lo, hi)
+        except np.linalg.LinAlgError:
+            break
+        f_new = chi2(x_new)
+        if not f_new < f:
+            break
+        done = f - f_new < 1e-3
+        x, f = x_new, f_new
+        if done:
+            break
+    return x
 
 
 def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
@@ -683,15 +755,26 @@ def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
 
     Members extending the default start from its fit (``start``) with the added parameters at 0;
     a second exponential of the tail is searched like the first (fraction profiled inside a
-    search over log tau), then the first re-searched with the second held; the AC-coupling
-    undershoot (coupling kappa, tau_hp) is searched the same way (kappa of either sign).
+    search over log tau), then the first re-searched with the second held, then both polished
+    together. The AC-coupling undershoot (its amplitudes linear) is a 1-d search over log tau_hp.
     """
     if name == "baseline_drift" and form == "ac_coupling":
-        return _search_two_exponential(
-            "ac_coupling", chi2, lo, hi, f_starts=(-2e-3, 0.0, 2e-3), f_range=(lo[0], hi[0])
+        grid = np.log([2e-6, 5e-6, 1.5e-5, 5e-5, 2e-4, 1e-3, 1e-2])
+        vals = [chi2([np.exp(z)]) for z in grid]
+        b = int(np.argmin(vals))
+        sol = optimize.minimize_scalar(
+            lambda z: chi2([np.exp(z)]),
+            bounds=(grid[max(b - 1, 0)], grid[min(b + 1, grid.size - 1)]),
+            method="bounded",
+            options={"xatol": 1e-3},
         )
+        return np.array([np.exp(sol.x if sol.fun <= vals[b] else grid[b])])
     if start is None:
         raise ValueError(f"the {form} form of {name} starts from the default member's fit")
+    start = dict(start)
+    if name == "second_mode":
+        # the default's tau_2 = tau_ratio tau is r = 1/tau_ratio, d = 0
+        start["overlap"] = 1.0 / start["tau_ratio"]
     x0 = np.array([start.get(n, 0.0) for n in names], float)
     if name == "extinction_tail":
         x = x0.copy()
@@ -701,13 +784,38 @@ def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
         x[:2] = _search_two_exponential(
             name, lambda z: chi2([z[0], z[1], x[2], x[3]]), lo[:2], hi[:2]
         )
-        return x
+        # the two terms trade amplitude against time: polish jointly, the times in log
+        llo, lhi = (
+            np.r_[lo[0], np.log(lo[1]), lo[2], np.log(lo[3])],
+            np.r_[hi[0], np.log(hi[1]), hi[2], np.log(hi[3])],
+        )
+
+        def chi2_log(z):
+            return chi2([z[0], np.exp(z[1]), z[2], np.exp(z[3])])
+
+        z0 = np.r_[x[0], np.log(x[1]), x[2], np.log(x[3])]
+        steps = np.r_[0.3 * x[0] + 2e-3, 0.3, 0.3 * x[2] + 2e-3, 0.3]
+        z = _nelder_mead(chi2_log, z0, steps, llo, lhi, 300)
+        return np.r_[z[0], np.exp(z[1]), z[2], np.exp(z[3])]
     steps = _member_steps(names, x0)
+    if form in ("cubic", "quadratic"):
+        return _newton_steps(chi2, x0, steps, lo, hi)
     if name == "mode_beating":
         dt = float(ringdowns.dt_s)
         n_eff = resid_norm.shape[-1] if resid_norm is not None else ringdowns.n_samples
         steps[0] = 0.1 / (n_eff * dt)  # a tenth of a periodogram bin
-    return _nelder_mead(chi2, x0, steps, lo, hi, 40 * x0.size)
+    # restarts with a fresh simplex: the members' parameters are strongly correlated (e.g. the
+    # overlap r and the rate d: 1/tau varies by a factor < 2 over a line), where one simplex
+    # collapses early
+    x = x0
+    for _ in range(3):
+        f_old = chi2(x)
+        x = _nelder_mead(
+            chi2, x, _member_steps(names, x) if x is not x0 else steps, lo, hi, 40 * x0.size
+        )
+        if f_old - chi2(x) < 0.1:
+            break
+    return x
 
 
 @dataclass(frozen=True)
@@ -749,10 +857,10 @@ def fit_family(
     computed for the chosen member only.
     """
     n_rows = len(rows_of)
-    per_row = 2 * n_rows if name == "mode_beating" else 0
     scores, fits = [], {}
     start = None
     for form, _, pars in FAMILIES[name]:
+        per_row = n_rows * member_row_params(name, form)
         params, res, _ = optimise_shared(
             name,
             ringdowns,
@@ -885,6 +993,9 @@ def _names(kind, profile_name, extras):
         names += ["etalon_amplitude_per_m", "etalon_period_hz", "etalon_phase_rad"]
     if "neighbour_line" in extras:
         names += ["neighbour_offset_hz", "neighbour_ratio"]
+    for form, (effect, _, added) in SPECTRUM_FORMS.items():
+        if form in extras and effect in extras:
+            names += list(added)
     return tuple(names)
 
 
@@ -896,12 +1007,14 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
     det = nu_hz - nu_ref_hz
     g = profile(profile_name, det, p["position_offset_hz"], doppler_hwhm_hz, **shape)
     if "neighbour_offset_hz" in p:
+        ws = p.get("neighbour_width_scale", 1.0)
+        n_shape = {k: (v * ws if k in ("gamma0_hz", "gamma2_hz") else v) for k, v in shape.items()}
         g = g + p["neighbour_ratio"] * profile(
             profile_name,
             det,
             p["position_offset_hz"] + p["neighbour_offset_hz"],
-            doppler_hwhm_hz,
-            **shape,
+            doppler_hwhm_hz * ws,
+            **n_shape,
         )
     if kind == "absorption":
         y = p["line_area"] * g.real + p["baseline"] + p.get("slope", 0.0) * det
@@ -911,6 +1024,10 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
         y = y + p["etalon_amplitude_per_m"] * np.sin(
             2 * np.pi * det / p["etalon_period_hz"] + p["etalon_phase_rad"]
         )
+        if "etalon2_amplitude_per_m" in p:
+            y = y + p["etalon2_amplitude_per_m"] * np.sin(
+                4 * np.pi * det / p["etalon_period_hz"] + p["etalon2_phase_rad"]
+            )
     return y
 
 
@@ -923,6 +1040,8 @@ _LOWER_BOUNDS = {
     "etalon_period_hz": 1e8,
     "neighbour_ratio": 0.0,
     "etalon_amplitude_per_m": 0.0,
+    "etalon2_amplitude_per_m": 0.0,
+    "neighbour_width_scale": 0.2,
 }
 
 
@@ -936,6 +1055,8 @@ def _absolute_scales(doppler_hwhm_hz) -> dict:
         "baseline": 0.0,
         "etalon_amplitude_per_m": 1e-8,
         "neighbour_ratio": 1e-4,
+        "etalon2_amplitude_per_m": 1e-8,
+        "etalon2_phase_rad": 1.0,
     }
 
 
@@ -961,6 +1082,9 @@ def _default_start(kind, nu_hz, y, doppler_hwhm_hz) -> dict:
         "etalon_phase_rad": 0.0,
         "neighbour_offset_hz": 1e9,
         "neighbour_ratio": 0.0,
+        "etalon2_amplitude_per_m": 0.0,
+        "etalon2_phase_rad": 0.0,
+        "neighbour_width_scale": 1.0,
     }
     return default
 
@@ -1013,13 +1137,13 @@ def fit_spectrum_extended(
     names_all = _names(kind, profile_name, extras)
     names = tuple(n for n in names_all if n not in fixed)
     default = _default_start(kind, nu_hz, y, doppler_hwhm_hz)
+    user_start = start is not None
     start = {**default, **(start or {})}
     lo = _LOWER_BOUNDS
     lo_v = np.array([lo.get(n, -np.inf) for n in names])
     span = float(np.ptp(nu_hz))
-    hi_v = np.array(
-        [{"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5}.get(n, np.inf) for n in names]
-    )
+    upper = {"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5, "neighbour_width_scale": 5.0}
+    hi_v = np.array([upper.get(n, np.inf) for n in names])
     nonsc = _absolute_scales(doppler_hwhm_hz)
 
     def run(st):
@@ -1050,7 +1174,18 @@ def fit_spectrum_extended(
         return float(2 * sol.cost), sol.x * sc
 
     starts = [start]
-    if "etalon" in extras or "neighbour_line" in extras:
+    free_forms = [
+        f for f in extras if f in SPECTRUM_FORMS and any(n in names for n in SPECTRUM_FORMS[f][2])
+    ]
+    if free_forms:
+        # a higher family member starts from its default member's fit
+        if not user_start:
+            base = tuple(e for e in extras if e not in SPECTRUM_FORMS)
+            fit0 = fit_spectrum_extended(
+                kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, base, fixed=fixed
+            )
+            starts = [{**start, **_form_start(fit0, free_forms, u, nu_ref_hz)}]
+    elif "etalon" in extras or "neighbour_line" in extras:
         starts = _extra_starts(
             kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras, start, span
         )
@@ -1109,3 +1244,65 @@ def _sinusoid_at(det, r, u, period):
     a = np.stack([np.sin(x), np.cos(x)], 1) / u[:, None]
     c, *_ = np.linalg.lstsq(a, r / u, rcond=None)
     return float(np.hypot(*c)), float(np.arctan2(c[1], c[0]))
+
+
+@dataclass(frozen=True)
+class SpectrumFamilyFit:
+    """The member of a spectrum-level effect's family the BIC chose, and each member's score.
+
+    ``form`` is None for the default member, else a key of :data:`SPECTRUM_FORMS`; ``scores``
+    holds (form label, chi2, number of line-fit parameters) per member fitted.
+    """
+
+    effect: str
+    form: str | None
+    label: str
+    fit: SpectrumFit
+    scores: tuple
+
+
+def fit_spectrum_family(
+    effect, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras=(), chi2_before=None
+) -> SpectrumFamilyFit:
+    """Fit ``effect`` (etalon or neighbour_line) on top of ``extras``, member by member.
+
+    The default member first; its higher member (:data:`SPECTRUM_FORMS`) starts from it, with
+    the added harmonic's amplitude and phase from the default fit's residuals at half the period,
+    or the neighbour's width scale at 1. The member with the lowest BIC (chi2 + k ln n) is kept;
+    the higher member is fitted only where the default beats ``chi2_before`` (Delta BIC > 0).
+    """
+    args = ("absorption", nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz)
+    extras = tuple(extras)
+    fit0 = fit_spectrum_extended(*args, (*extras, effect))
+    n = fit0.n
+    scores = [(SPECTRUM_DEFAULT_LABEL[effect], fit0.chi2, fit0.k)]
+    best = (None, SPECTRUM_DEFAULT_LABEL[effect], fit0)
+    k_before = len(_names("absorption", profile_name, extras))
+    if chi2_before is not None and chi2_before - fit0.chi2 - (fit0.k - k_before) * np.log(n) <= 0:
+        return SpectrumFamilyFit(effect, None, best[1], fit0, tuple(scores))
+    for form, (eff, label, _) in SPECTRUM_FORMS.items():
+        if eff != effect:
+            continue
+        start = _form_start(fit0, [form], np.asarray(u, float), nu_ref_hz)
+        fit1 = fit_spectrum_extended(*args, (*extras, effect, form), start=start)
+        scores.append((label, fit1.chi2, fit1.k))
+        if fit1.chi2 + fit1.k * np.log(n) < best[2].chi2 + best[2].k * np.log(n):
+            best = (form, label, fit1)
+    return SpectrumFamilyFit(effect, best[0], best[1], best[2], tuple(scores))
+
+
+def _form_start(fit0: SpectrumFit, forms, u, nu_ref_hz) -> dict:
+    """Start of a higher spectrum member from its default member's fit ``fit0``.
+
+    The second harmonic's amplitude and phase from the residuals at half the fringe period
+    (at amplitude 0 the phase would have no gradient); the neighbour's width scale at 1.
+    """
+    start = dict(zip(fit0.names, fit0.values))
+    if "etalon_harmonic" in forms:
+        r = -fit0.residuals_norm * u  # data minus model
+        det = fit0.nu_hz - nu_ref_hz
+        amp, ph = _sinusoid_at(det, r, u, 0.5 * start["etalon_period_hz"])
+        start.update(etalon2_amplitude_per_m=max(amp, 1e-12), etalon2_phase_rad=ph)
+    if "neighbour_width" in forms:
+        start["neighbour_width_scale"] = 1.0
+    return start
