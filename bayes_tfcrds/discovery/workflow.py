@@ -32,6 +32,7 @@ from bayes_tfcrds.fit.extensions import (
     fit_spectrum_extended,
     fit_spectrum_family,
     fit_transient_rows,
+    form_of,
     shared_covariance,
 )
 from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
@@ -824,6 +825,19 @@ def _add_shared_uncertainty(config, ev: Evaluation, best: Candidate) -> None:
     best.state.shared_u[best.effect] = {k: v[1] for k, v in best.params.items()}
 
 
+def _form_label(cand: Candidate) -> str:
+    """The member of the candidate's family that was chosen ("2 exponentials"), "" if none."""
+    if cand.state is None:
+        return ""
+    if cand.effect in TRANSIENT_LEVEL:
+        params = cand.state.shared.get(cand.effect, {})
+        return family_member(cand.effect, form_of(cand.effect, params))[1] if params else ""
+    if cand.effect in SPECTRUM_DEFAULT_LABEL:
+        forms = [f for f in cand.state.model.forms if SPECTRUM_FORMS[f][0] == cand.effect]
+        return SPECTRUM_FORMS[forms[0]][1] if forms else SPECTRUM_DEFAULT_LABEL[cand.effect]
+    return ""
+
+
 def _step_record(best: Candidate, runner, ev: Evaluation, new_ev: Evaluation) -> dict:
     """One step of ``discovery.json``: the effect added, its evidence, the gaps before and after."""
     return {
@@ -833,6 +847,7 @@ def _step_record(best: Candidate, runner, ev: Evaluation, new_ev: Evaluation) ->
         "k": best.k,
         "n": best.n,
         "block": best.block,
+        "form": _form_label(best),
         "note": best.note,
         "params": {k: {"value": v[0], "u": v[1], "unit": v[2]} for k, v in best.params.items()},
         "runner_up": None
