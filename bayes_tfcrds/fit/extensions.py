@@ -24,6 +24,16 @@ small optimisation of the total chi2):
 * ``transfer_function`` / ``window_history``: TF-CRDS with the calibrated H instead of CRDS, and
   the extinction instead of the letter window (these only change ``method``/``window``).
 
+Each effect is a family of forms (:data:`FAMILIES`, :data:`SPECTRUM_FORMS`), so that one
+candidate can absorb an effect whose physical form differs from its default: a cubic detector
+response; a quadratic drift or an AC-coupling undershoot (a per-transient column
+exp(-t/tau_hp)); a second mode with 1/tau_2 = r/tau + d; a tail of two exponentials; a damped,
+chirped beat; an etalon with its second harmonic; a neighbour with its own widths.
+:func:`fit_family` / :func:`fit_spectrum_family` fit the members in order and keep the lowest
+BIC (chi2 + k ln n on the effect's block, every shared and per-transient parameter charged);
+higher members are tried only where the default already beats the model without the effect.
+The default member's fit is the same as before the families existed.
+
 With TF-CRDS the extension terms pass through H as well: exponentials through the exact
 forward model of :mod:`bayes_tfcrds.physics.forward`, the beating columns by one FFT on the
 extinction grid (for the ``letter`` window too: the window approximation is the main term's, not the
