@@ -120,6 +120,13 @@ FAMILIES = {
                 ("extra_rate_per_s", "1/s", -1e6, 2e6),
             ),
         ),
+        # the same decay, with the mode's share free per transient (the coupling into the
+        # transverse mode changes with the laser's alignment and frequency): a column per transient
+        (
+            "free_amplitude",
+            "1/tau_2 = r/tau + d, amplitude per transient",
+            (("overlap", "1", 0.0, 25.0), ("extra_rate_per_s", "1/s", -1e6, 2e6)),
+        ),
     ),
     "extinction_tail": (
         ("one_exponential", "1 exponential", SHARED["extinction_tail"]),
@@ -179,7 +186,11 @@ def member_row_params(name, form) -> int:
     """Linear parameters a member adds to every transient (charged once per transient)."""
     if name == "mode_beating":
         return 2
-    return 1 if (name, form) == ("baseline_drift", "ac_coupling") else 0
+    return (
+        1
+        if (name, form) in (("baseline_drift", "ac_coupling"), ("second_mode", "free_amplitude"))
+        else 0
+    )
 
 
 def form_of(name, params) -> str:
@@ -247,11 +258,12 @@ class TransientSpec:
         return name in self.shared
 
     def n_row_params(self) -> int:
-        """Linear parameters per transient besides tau: b, B, beating and undershoot amplitudes."""
+        """Linear parameters per transient besides tau: b, B and the extensions' amplitudes."""
         return (
             2
             + (2 if self.has("mode_beating") else 0)
             + (1 if "tau_hp_s" in self.shared.get("baseline_drift", {}) else 0)
+            + (1 if self.has("second_mode") and "fraction" not in self.shared["second_mode"] else 0)
         )
 
     def n_shared(self) -> int:
@@ -302,15 +314,18 @@ class _Columns:
     def __call__(self, tau, rows):
         sh = self.spec.shared
         g = g_main = self.main(tau, rows)
+        second = None
         if "second_mode" in sh:
             p = sh["second_mode"]
-            f = p["fraction"]
             if "overlap" in p:
                 # 1/tau_2 = r/tau + d, kept positive (tau_2 <= 100 tau: a mode cannot gain)
                 tau2 = 1.0 / np.maximum(p["overlap"] / tau + p["extra_rate_per_s"], 1e-2 / tau)
             else:
                 tau2 = p["tau_ratio"] * tau
-            g = (1.0 - f) * g + f * self.main(tau2, rows)
+            if "fraction" in p:
+                g = (1.0 - p["fraction"]) * g + p["fraction"] * self.main(tau2, rows)
+            else:
+                second = self.main(tau2, rows)  # its own amplitude per transient
         if "extinction_tail" in sh:
             p = sh["extinction_tail"]
             g0 = g_main
@@ -344,6 +359,8 @@ class _Columns:
                 cols.append(
                     self.filtered(lambda t, ta: env(t, ta) * np.sin((w + chirp * t) * t), tau)
                 )
+        if second is not None:
+            cols.append(second)
         if "tau_hp_s" in sh.get("baseline_drift", {}):
             thp = sh["baseline_drift"]["tau_hp_s"]
             cols.append(self.filtered(lambda t, ta: np.exp(-t / thp) + 0.0 * ta, tau))
@@ -784,7 +801,7 @@ def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
     start = dict(start)
     if name == "second_mode":
         # the default's tau_2 = tau_ratio tau is r = 1/tau_ratio, d = 0
-        start["overlap"] = 1.0 / start["tau_ratio"]
+        start.setdefault("overlap", 1.0 / start["tau_ratio"])
     x0 = np.array([start.get(n, 0.0) for n in names], float)
     if name == "extinction_tail":
         x = x0.copy()
@@ -889,8 +906,8 @@ def fit_family(
         chi2 = float(res.chi2.sum())
         scores.append((form, chi2, k))
         fits[form] = (params, res)
-        if start is None:
-            start = params
+        start = {**(start or {}), **params}  # a member starts from the ones before it
+        if len(scores) == 1:
             if chi2_before is not None and chi2_before - chi2 - k * np.log(n) <= 0:
                 break
     n = int(fits[scores[0][0]][1].n_used.sum())

@@ -179,6 +179,21 @@ def test_second_mode_with_its_own_losses(own_losses):
         _check(fam, {"fraction": frac, "tau_ratio": 1.0 / eta})
 
 
+def test_second_mode_with_its_share_per_transient():
+    # the coupling into the transverse mode follows the laser's alignment at each spectral
+    # point: its share is different for every transient, its decay 1/tau_2 = eta/tau + (L2 -
+    # eta L1) as above
+    l1, eta, l2 = 1.0 / 12e-6, 0.4, 1.0 / 5e-6
+    alpha_c = np.linspace(0.0, 6e4, M)
+    tau, tau2 = 1.0 / (l1 + alpha_c), 1.0 / (l2 + eta * alpha_c)
+    share = np.random.default_rng(10).uniform(0.02, 0.12, M)[:, None]
+    rd = _record(OFFSET + (1 - share) * _decay(tau) + share * _decay(tau2), 11)
+    fam = _family("second_mode", rd)
+    assert fam.form == "free_amplitude", fam.scores
+    assert fam.k == 2 + M  # r, d and one amplitude per transient
+    _check(fam, {"overlap": eta, "extra_rate_per_s": l2 - eta * l1})
+
+
 # --------------------------------------------------------------------------- baseline drift
 
 
