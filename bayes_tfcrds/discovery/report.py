@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from bayes_tfcrds.discovery.views import effect_with_form
 from bayes_tfcrds.discovery.workflow import DiscoveryResult
 from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.output.plotting import MICROSECOND, dodge, legend_outside, pyplot
@@ -30,7 +31,7 @@ def _steps_table(rep, result) -> None:
         rows.append(
             [
                 i + 1,
-                s["effect"],
+                effect_with_form(s),
                 f"{s['evidence']:.1f}",
                 f"{s['delta_chi2']:.1f} / {s['k']}",
                 s["block"],

@@ -14,6 +14,11 @@ from bayes_tfcrds.output.plotting import house_style
 STEP_HEADER = ("step", "effect added", "evidence (Delta BIC)", "block", "fitted parameters")
 
 
+def effect_with_form(step: dict) -> str:
+    """A step's effect with its family's chosen member: "extinction_tail (2 exponentials)"."""
+    return step["effect"] + (f" ({step['form']})" if step.get("form") else "")
+
+
 def _params(params: dict) -> str:
     return "; ".join(
         f"{k} = {v['value']:.4g} ± {v['u']:.2g} {v['unit']}".strip() for k, v in params.items()
@@ -22,7 +27,7 @@ def _params(params: dict) -> str:
 
 def _step_rows(result) -> list:
     return [
-        [i + 1, s["effect"], f"{s['evidence']:.1f}", s["block"], _params(s["params"])]
+        [i + 1, effect_with_form(s), f"{s['evidence']:.1f}", s["block"], _params(s["params"])]
         for i, s in enumerate(result.steps)
     ] or [["-", "nothing added", "", "", ""]]
 

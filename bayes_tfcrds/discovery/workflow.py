@@ -36,11 +36,15 @@ from scipy import stats
 
 from bayes_tfcrds.discovery.nulls import N_BOOT, gap_nulls, pre_extinction_noise
 from bayes_tfcrds.fit.extensions import (
-    SHARED,
+    SPECTRUM_DEFAULT_LABEL,
+    SPECTRUM_FORMS,
     TransientSpec,
+    family_member,
+    fit_family,
     fit_spectrum_extended,
+    fit_spectrum_family,
     fit_transient_rows,
-    optimise_shared,
+    form_of,
     shared_covariance,
 )
 from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
@@ -100,11 +104,17 @@ class ExperimentModel:
     """Which canonical effects the analysis model contains; the analysis choices follow."""
 
     effects: frozenset = frozenset()
+    #: higher members of spectrum-level families in use (keys of SPECTRUM_FORMS, e.g.
+    #: ``etalon_harmonic``); transient-level forms live in the shared parameters
+    forms: frozenset = frozenset()
 
     def __post_init__(self):
         bad = set(self.effects) - set(CANDIDATES)
         if bad:
             raise ValueError(f"unknown effect(s) {sorted(bad)}; choose from {list(CANDIDATES)}")
+        bad_forms = {f for f in self.forms if SPECTRUM_FORMS.get(f, ("",))[0] not in self.effects}
+        if bad_forms:
+            raise ValueError(f"form(s) {sorted(bad_forms)} need their effect in the model")
         if "window_history" in self.effects and "transfer_function" not in self.effects:
             raise ValueError(
                 "window_history (letter -> extinction window) needs transfer_function in the model"
@@ -132,10 +142,12 @@ class ExperimentModel:
 
     @property
     def spectrum_extras(self) -> tuple:
-        return tuple(e for e in ("etalon", "neighbour_line") if e in self.effects)
+        return tuple(e for e in ("etalon", "neighbour_line") if e in self.effects) + tuple(
+            sorted(self.forms)
+        )
 
-    def plus(self, effect) -> ExperimentModel:
-        return ExperimentModel(self.effects | {effect})
+    def plus(self, effect, form=None) -> ExperimentModel:
+        return ExperimentModel(self.effects | {effect}, self.forms | ({form} if form else set()))
 
     def label(self) -> str:
         return "+".join(
@@ -148,6 +160,7 @@ class ExperimentModel:
                 ),
             ]
             + (["extinction-window"] if self.window == "extinction" else [])
+            + sorted(self.forms)
         )
 
 
@@ -275,6 +288,9 @@ def fit_cmds(bundle, config, model: ExperimentModel, line):
             "neighbour_offset_hz": line.value("neighbour_offset_hz"),
             "neighbour_ratio": line.value("neighbour_ratio"),
         }
+        if "neighbour_width" in model.forms:
+            extras += ("neighbour_width",)
+            fixed["neighbour_width_scale"] = line.value("neighbour_width_scale")
     return fit_spectrum_extended(
         "dispersion",
         cm.nu_hz,
@@ -594,14 +610,15 @@ def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Can
     chi2_t, n_t = ev.block["transients"]
     base = st.spec()
     try:
-        params, res, cov = optimise_shared(
-            effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first, with_cov=with_cov
+        fam = fit_family(
+            effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first, chi2_t, with_cov
         )
     except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:
         return _fail(effect, f"fit failed: {exc}")
-    k = len(SHARED[effect]) + (2 * m if effect == "mode_beating" else 0)
+    # the family's chosen member (its order by BIC inside the family), every parameter charged
+    params, res, cov, k = fam.params, fam.result, fam.cov, fam.k
     dchi2 = chi2_t - float(res.chi2.sum())
-    units = {s[0]: s[1] for s in SHARED[effect]}
+    units = {s[0]: s[1] for s in family_member(effect, fam.form)[2]}
     pu = {}
     for i, (name, v) in enumerate(params.items()):
         u = float(np.sqrt(cov[i, i])) if cov is not None else float("nan")
@@ -621,7 +638,10 @@ def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Can
         "transients",
         pu,
         new,
-        "per-transient beating amplitudes counted" if effect == "mode_beating" else "",
+        f"form: {fam.label} (BIC among "
+        + ", ".join(f"{f}: {c + kk * np.log(fam.n):.1f}" for f, c, kk in fam.scores)
+        + ")"
+        + ("; per-transient beating amplitudes counted" if effect == "mode_beating" else ""),
     )
 
 
@@ -708,8 +728,29 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
     new_model = model.plus(effect)
     lf_old = ev.lines[0]
     nu = np.asarray(rd.nu_hz, float)[ev.good]
+    note = ""
     try:
-        lf = fit_lines(bundle, config, new_model, nu, ev.tau[:, 0], ev.tau_u[:, 0])
+        if effect in SPECTRUM_DEFAULT_LABEL:
+            # a family (etalon, neighbour_line): the member with the lowest BIC on the spectrum
+            a, ua = absorption_from_tau(ev.tau[:, 0], ev.tau_u[:, 0])
+            fam = fit_spectrum_family(
+                effect,
+                nu,
+                a,
+                ua,
+                model.profile,
+                doppler_of(bundle.sample),
+                bundle.sample.nu0_hz,
+                model.spectrum_extras,
+                lf_old.chi2,
+            )
+            lf, new_model = fam.fit, model.plus(effect, fam.form)
+            note = f"form: {fam.label} (BIC among " + ", ".join(
+                f"{lab}: {c + kk * np.log(lf.n):.1f}" for lab, c, kk in fam.scores
+            )
+            note += ")"
+        else:
+            lf = fit_lines(bundle, config, new_model, nu, ev.tau[:, 0], ev.tau_u[:, 0])
     except (ValueError, np.linalg.LinAlgError) as exc:
         return _fail(effect, f"fit failed: {exc}")
     dchi2 = lf_old.chi2 - lf.chi2
@@ -723,10 +764,13 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
         "etalon_phase_rad": "rad",
         "neighbour_offset_hz": "Hz",
         "neighbour_ratio": "1",
+        "etalon2_amplitude_per_m": "1/m",
+        "etalon2_phase_rad": "rad",
+        "neighbour_width_scale": "1",
     }
     pu = {n: (lf.value(n), lf.stderr(n), units.get(n, "")) for n in new_names}
     new = ModelState(new_model, dict(st.shared), dict(st.shared_u), st.calibration)
-    return Candidate(effect, dchi2 - k * np.log(lf.n), dchi2, k, lf.n, "spectrum", pu, new)
+    return Candidate(effect, dchi2 - k * np.log(lf.n), dchi2, k, lf.n, "spectrum", pu, new, note)
 
 
 def try_candidate(
@@ -886,6 +930,19 @@ def _add_shared_uncertainty(config, ev: Evaluation, best: Candidate) -> None:
     best.state.shared_u[best.effect] = {k: v[1] for k, v in best.params.items()}
 
 
+def _form_label(cand: Candidate) -> str:
+    """The member of the candidate's family that was chosen ("2 exponentials"), "" if none."""
+    if cand.state is None:
+        return ""
+    if cand.effect in TRANSIENT_LEVEL:
+        params = cand.state.shared.get(cand.effect, {})
+        return family_member(cand.effect, form_of(cand.effect, params))[1] if params else ""
+    if cand.effect in SPECTRUM_DEFAULT_LABEL:
+        forms = [f for f in cand.state.model.forms if SPECTRUM_FORMS[f][0] == cand.effect]
+        return SPECTRUM_FORMS[forms[0]][1] if forms else SPECTRUM_DEFAULT_LABEL[cand.effect]
+    return ""
+
+
 def _step_record(best: Candidate, runner, ev: Evaluation, new_ev: Evaluation) -> dict:
     """One step of ``discovery.json``: the effect added, its evidence, the gaps before and after."""
     return {
@@ -895,6 +952,8 @@ def _step_record(best: Candidate, runner, ev: Evaluation, new_ev: Evaluation) ->
         "k": best.k,
         "n": best.n,
         "block": best.block,
+        "form": _form_label(best),
+        "note": best.note,
         "params": {k: {"value": v[0], "u": v[1], "unit": v[2]} for k, v in best.params.items()},
         "runner_up": None
         if runner is None

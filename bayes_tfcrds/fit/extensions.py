@@ -24,6 +24,16 @@ small optimisation of the total chi2):
 * ``transfer_function`` / ``window_history``: TF-CRDS with the calibrated H instead of CRDS, and
   the extinction instead of the letter window (these only change ``method``/``window``).
 
+Each effect is a family of forms (:data:`FAMILIES`, :data:`SPECTRUM_FORMS`), so that one
+candidate can absorb an effect whose physical form differs from its default: a cubic detector
+response; a quadratic drift or an AC-coupling undershoot (a per-transient column
+exp(-t/tau_hp)); a second mode with 1/tau_2 = r/tau + d; a tail of two exponentials; a damped,
+chirped beat; an etalon with its second harmonic; a neighbour with its own widths.
+:func:`fit_family` / :func:`fit_spectrum_family` fit the members in order and keep the lowest
+BIC (chi2 + k ln n on the effect's block, every shared and per-transient parameter charged);
+higher members are tried only where the default already beats the model without the effect.
+The default member's fit is the same as before the families existed.
+
 With TF-CRDS the extension terms pass through H as well: exponentials through the exact
 forward model of :mod:`bayes_tfcrds.physics.forward`, the beating columns by one FFT on the
 extinction grid (for the ``letter`` window too: the window approximation is the main term's, not the
@@ -71,15 +81,165 @@ SHARED = {
     "mode_beating": (("freq_hz", "Hz", 1e4, 2.4e7),),
 }
 SHAPE_EFFECTS = ("second_mode", "extinction_tail", "mode_beating")
+
+#: each transient effect as a family of forms, in order of complexity: (form, label, shared
+#: parameters). The first member is the effect's default (``SHARED``); a higher member adds
+#: parameters to it and is kept only where the information criterion on the transient block
+#: prefers it (:func:`fit_family`), so an effect whose physical form differs from the default can
+#: be absorbed by one candidate instead of leaving a misfit for spurious ones.
+FAMILIES = {
+    "static_nonlinearity": (
+        ("quadratic", "quadratic", SHARED["static_nonlinearity"]),
+        # V' = V + beta V^2/V_ref + gamma V^3/V_ref^2 (a saturating or expanding detector)
+        ("cubic", "cubic", (*SHARED["static_nonlinearity"], ("gamma", "1", -0.2, 0.2))),
+    ),
+    "baseline_drift": (
+        ("linear", "linear drift", SHARED["baseline_drift"]),
+        # drift bending over the record (thermal settling of the detector baseline)
+        (
+            "quadratic",
+            "quadratic drift",
+            (*SHARED["baseline_drift"], ("curvature_v_per_s2", "V/s^2", -2e7, 2e7)),
+        ),
+        # AC coupling / detector recovery: the step at extinction leaves an undershoot
+        # -kappa B exp(-t/tau_hp), proportional to each transient's own amplitude B: one column
+        # exp(-t/tau_hp) per transient (its amplitude free, so it is charged per transient) with
+        # one shared time constant
+        ("ac_coupling", "AC-coupling undershoot", (("tau_hp_s", "s", 1e-6, 1e-2),)),
+    ),
+    "second_mode": (
+        ("ratio", "decay time tau_ratio tau", SHARED["second_mode"]),
+        # 1/tau_2 = r/tau + d: partial overlap r with the absorber (the mode sees r alpha c) and
+        # its own mirror losses (d, relative to r times the main mode's)
+        (
+            "overlap_and_rate",
+            "1/tau_2 = r/tau + d",
+            (
+                ("fraction", "1", 0.0, 0.3),
+                ("overlap", "1", 0.0, 25.0),
+                ("extra_rate_per_s", "1/s", -1e6, 2e6),
+            ),
+        ),
+        # the same decay, with the mode's share free per transient (the coupling into the
+        # transverse mode changes with the laser's alignment and frequency): a column per transient
+        (
+            "free_amplitude",
+            "1/tau_2 = r/tau + d, amplitude per transient",
+            (("overlap", "1", 0.0, 25.0), ("extra_rate_per_s", "1/s", -1e6, 2e6)),
+        ),
+    ),
+    "extinction_tail": (
+        ("one_exponential", "1 exponential", SHARED["extinction_tail"]),
+        (
+            "two_exponentials",
+            "2 exponentials",
+            (
+                *SHARED["extinction_tail"],
+                ("fraction2", "1", 0.0, 0.3),
+                ("tau2_s", "s", 2e-7, 2e-4),
+            ),
+        ),
+    ),
+    "mode_beating": (
+        ("steady", "steady beat", SHARED["mode_beating"]),
+        # the beat decays faster than the main mode (the beating modes' own losses) and its
+        # frequency drifts linearly (a chirp from the cavity length settling)
+        (
+            "damped",
+            "damped beat",
+            (*SHARED["mode_beating"], ("damping_per_s", "1/s", -2e5, 2e6)),
+        ),
+        (
+            "damped_chirped",
+            "damped, chirped beat",
+            (
+                *SHARED["mode_beating"],
+                ("damping_per_s", "1/s", -2e5, 2e6),
+                ("chirp_hz_per_s", "Hz/s", -1e12, 1e12),
+            ),
+        ),
+    ),
+}
+#: first simplex step of each added parameter (its physically small scale)
+_ADDED_STEP = {
+    "gamma": 1e-3,
+    "curvature_v_per_s2": 2e5,
+    "extra_rate_per_s": 2e4,
+    "overlap": 0.1,
+    "damping_per_s": 2e4,
+    "chirp_hz_per_s": 1e10,
+}
+
+
+def family_member(name, form=None):
+    """(form, label, shared parameters) of effect ``name``'s member ``form`` (None: default)."""
+    members = FAMILIES[name]
+    if form is None:
+        return members[0]
+    for mem in members:
+        if mem[0] == form:
+            return mem
+    raise ValueError(f"{name} has no form {form!r}; choose from {[m[0] for m in members]}")
+
+
+def member_row_params(name, form) -> int:
+    """Linear parameters a member adds to every transient (charged once per transient)."""
+    if name == "mode_beating":
+        return 2
+    return (
+        1
+        if (name, form) in (("baseline_drift", "ac_coupling"), ("second_mode", "free_amplitude"))
+        else 0
+    )
+
+
+def form_of(name, params) -> str:
+    """The member of effect ``name`` whose parameters are exactly the keys of ``params``."""
+    keys = tuple(params)
+    for form, _, pars in FAMILIES[name]:
+        if tuple(p[0] for p in pars) == keys:
+            return form
+    raise ValueError(f"parameters {list(keys)} match no form of {name}")
+
+
 SPECTRUM_EXTRAS = ("etalon", "neighbour_line")
+#: higher members of the spectrum-level families: the extra each one adds on top of its effect
+#: (label, parameters). ``etalon_harmonic``: the fringe's second harmonic (an Airy fringe of a
+#: finesse above ~1 is not a sinusoid); ``neighbour_width``: the neighbour's widths (Doppler and
+#: collisional) scaled by a free factor (another molecule, mass or broadening).
+SPECTRUM_FORMS = {
+    "etalon_harmonic": (
+        "etalon",
+        "sinusoid + 2nd harmonic",
+        ("etalon2_amplitude_per_m", "etalon2_phase_rad"),
+    ),
+    "neighbour_width": ("neighbour_line", "free width scale", ("neighbour_width_scale",)),
+}
+SPECTRUM_DEFAULT_LABEL = {"etalon": "sinusoid", "neighbour_line": "same widths"}
 
 
-def invert_nonlinearity(v, beta):
-    """V from V' = V + beta V^2 / V_ref (V), the root that is continuous at beta = 0."""
+def invert_nonlinearity(v, beta, gamma=0.0, newton_steps=3):
+    """V from V' = V + beta V^2/V_ref + gamma V^3/V_ref^2 (V), the root continuous at 0.
+
+    The quadratic's root is exact; a cubic term is then taken by Newton steps from it (for
+    |gamma V^2| << 1 each step squares the relative error, 3 steps reach machine precision).
+    """
     v = np.asarray(v, float)
-    if beta == 0.0:
+    if beta == 0.0 and gamma == 0.0:
         return v
-    return 2.0 * v / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * beta * v / V_REF, 1e-12)))
+    x = 2.0 * v / (1.0 + np.sqrt(np.maximum(1.0 + 4.0 * beta * v / V_REF, 1e-12)))
+    if gamma == 0.0:
+        return x
+    for _ in range(newton_steps):
+        u = x / V_REF
+        x = x - (x + beta * x * u + gamma * x * u * u - v) / nonlinearity_slope(x, beta, gamma)
+    return x
+
+
+def nonlinearity_slope(v, beta, gamma=0.0):
+    """dV'/dV = 1 + 2 beta V/V_ref + 3 gamma V^2/V_ref^2 at the true voltage V."""
+    u = np.asarray(v, float) / V_REF
+    return 1.0 + 2.0 * beta * u + 3.0 * gamma * u * u
 
 
 # --------------------------------------------------------------------------- transient model
@@ -98,11 +258,16 @@ class TransientSpec:
         return name in self.shared
 
     def n_row_params(self) -> int:
-        """Linear parameters per transient besides tau: b, B and the beating amplitudes."""
-        return 2 + (2 if self.has("mode_beating") else 0)
+        """Linear parameters per transient besides tau: b, B and the extensions' amplitudes."""
+        return (
+            2
+            + (2 if self.has("mode_beating") else 0)
+            + (1 if "tau_hp_s" in self.shared.get("baseline_drift", {}) else 0)
+            + (1 if self.has("second_mode") and "fraction" not in self.shared["second_mode"] else 0)
+        )
 
     def n_shared(self) -> int:
-        return sum(len(SHARED[k]) for k in self.shared)
+        return sum(len(v) for v in self.shared.values())
 
 
 class _Columns:
@@ -148,22 +313,57 @@ class _Columns:
 
     def __call__(self, tau, rows):
         sh = self.spec.shared
-        g = self.main(tau, rows)
+        g = g_main = self.main(tau, rows)
+        second = None
         if "second_mode" in sh:
-            f, r = sh["second_mode"]["fraction"], sh["second_mode"]["tau_ratio"]
-            g = (1.0 - f) * g + f * self.main(r * tau, rows)
+            p = sh["second_mode"]
+            if "overlap" in p:
+                # 1/tau_2 = r/tau + d, kept positive (tau_2 <= 100 tau: a mode cannot gain)
+                tau2 = 1.0 / np.maximum(p["overlap"] / tau + p["extra_rate_per_s"], 1e-2 / tau)
+            else:
+                tau2 = p["tau_ratio"] * tau
+            if "fraction" in p:
+                g = (1.0 - p["fraction"]) * g + p["fraction"] * self.main(tau2, rows)
+            else:
+                second = self.main(tau2, rows)  # its own amplitude per transient
         if "extinction_tail" in sh:
-            f, tx = sh["extinction_tail"]["fraction"], sh["extinction_tail"]["tau_s"]
-            d = 1.0 / tau - 1.0 / tx
-            # keep away from tau = tau_x, where the coefficient's pole cancels the difference's zero
-            d = np.where(np.abs(tau * d) < 1e-4, 1e-4 / tau, d)
-            txe = 1.0 / (1.0 / tau - d)
-            g = g + (f / (tau * d))[:, None] * (self.main(txe, rows) - self.main(tau, rows))
+            p = sh["extinction_tail"]
+            g0 = g_main
+            for fk, tk in (("fraction", "tau_s"), ("fraction2", "tau2_s")):
+                if fk not in p:
+                    continue
+                f, tx = p[fk], p[tk]
+                d = 1.0 / tau - 1.0 / tx
+                # keep away from tau = tau_x, where the coefficient's pole cancels the difference's
+                # zero
+                d = np.where(np.abs(tau * d) < 1e-4, 1e-4 / tau, d)
+                txe = 1.0 / (1.0 / tau - d)
+                g = g + (f / (tau * d))[:, None] * (self.main(txe, rows) - g0)
         cols = [np.ones_like(g), g]
         if "mode_beating" in sh:
-            w = 2 * np.pi * sh["mode_beating"]["freq_hz"]
-            cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.cos(w * t), tau))
-            cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.sin(w * t), tau))
+            p = sh["mode_beating"]
+            w = 2 * np.pi * p["freq_hz"]
+            gam = p.get("damping_per_s", 0.0)
+            chirp = np.pi * p.get("chirp_hz_per_s", 0.0)
+            if gam == 0.0 and chirp == 0.0:
+                cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.cos(w * t), tau))
+                cols.append(self.filtered(lambda t, ta: np.exp(-t / ta) * np.sin(w * t), tau))
+            else:
+
+                def env(t, ta):
+                    return np.exp(-t / ta - gam * t)
+
+                cols.append(
+                    self.filtered(lambda t, ta: env(t, ta) * np.cos((w + chirp * t) * t), tau)
+                )
+                cols.append(
+                    self.filtered(lambda t, ta: env(t, ta) * np.sin((w + chirp * t) * t), tau)
+                )
+        if second is not None:
+            cols.append(second)
+        if "tau_hp_s" in sh.get("baseline_drift", {}):
+            thp = sh["baseline_drift"]["tau_hp_s"]
+            cols.append(self.filtered(lambda t, ta: np.exp(-t / thp) + 0.0 * ta, tau))
         out = np.stack(cols, axis=1)
         out *= self.mask[rows][:, None, :]
         return out
@@ -250,17 +450,24 @@ def fit_transient_rows(
     noise2 = np.broadcast_to(noise_rows[:, None], y.shape)
     if "static_nonlinearity" in sh:
         beta = sh["static_nonlinearity"]["beta"]
-        y = invert_nonlinearity(y, beta)
+        gamma = sh["static_nonlinearity"].get("gamma", 0.0)
+        y = invert_nonlinearity(y, beta, gamma)
         # the noise is mapped back too, by 1/(dV'/dV): without it the chi2 of the mapped data
         # would drop for beta > 0 merely because the mapping shrinks the noise
-        noise2 = noise2 / np.abs(1.0 + 2.0 * beta * y / V_REF)
-    if "baseline_drift" in sh:
+        if gamma == 0.0:
+            noise2 = noise2 / np.abs(1.0 + 2.0 * beta * y / V_REF)
+        else:
+            noise2 = noise2 / np.abs(nonlinearity_slope(y, beta, gamma))
+    if "baseline_drift" in sh and "slope_v_per_s" in sh["baseline_drift"]:
         y = y - sh["baseline_drift"]["slope_v_per_s"] * (t - t[0])[None, :]
+        if "curvature_v_per_s2" in sh["baseline_drift"]:
+            y = y - sh["baseline_drift"]["curvature_v_per_s2"] * ((t - t[0]) ** 2)[None, :]
     dt = t[1] - t[0]
     first = np.array([first_index_at(t[0], dt, tc) for tc in t_cut_rows])
     mask = np.arange(t.size)[None, :] >= first[:, None]
     wm = mask / noise2**2
-    if not any(k in sh for k in SHAPE_EFFECTS):
+    shaped = any(k in sh for k in SHAPE_EFFECTS) or "tau_hp_s" in sh.get("baseline_drift", {})
+    if not shaped:
         fits = fit_transients(
             t,
             y,
@@ -395,6 +602,8 @@ def optimise_shared(
     resid_norm=None,
     search_bin: int = 8,
     with_cov: bool = True,
+    form: str | None = None,
+    start: dict | None = None,
 ):
     """Fit the shared parameters of extension ``name`` on the rows' total chi2.
 
@@ -402,13 +611,20 @@ def optimise_shared(
     Starting points come from the data (the residual periodogram for the beating frequency)
     and, for two-parameter extensions, a small grid, since the chi2 surface of a weak second
     exponential is flat along a valley and has more than one local minimum.
+
+    ``form`` picks a member of the effect's family (:data:`FAMILIES`; None: the default). A
+    higher member that extends the default starts from ``start``, the default member's fitted
+    parameters, with its added parameters at 0 (fitted by :func:`_fit_member`).
     """
     full = ringdowns
     if search_bin > 1 and name != "mode_beating":
         ringdowns = bin_ringdowns(ringdowns, search_bin)
-    names = [s[0] for s in SHARED[name]]
-    lo = np.array([s[2] for s in SHARED[name]])
-    hi = np.array([s[3] for s in SHARED[name]])
+    form = family_member(name)[0] if form is None else form
+    default = form == family_member(name)[0]
+    pars = family_member(name, form)[2]
+    names = [s[0] for s in pars]
+    lo = np.array([s[2] for s in pars])
+    hi = np.array([s[3] for s in pars])
     cache = {}
     warm = {"tau": np.asarray(tau_start_s, float)}
 
@@ -422,7 +638,7 @@ def optimise_shared(
 
     def key_of(x):
         x = np.clip(np.asarray(x, float), lo, hi)
-        if name in ("second_mode", "extinction_tail") and x[0] == 0.0:
+        if default and name in ("second_mode", "extinction_tail") and x[0] == 0.0:
             x = np.array([0.0, lo[1]])  # no second exponential: the time parameter is moot
         return x, tuple(np.round(x, 14))
 
@@ -435,7 +651,9 @@ def optimise_shared(
                 warm["tau"] = res.tau_s
         return cache[key][0]
 
-    if name == "static_nonlinearity":
+    if not default:
+        x = _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm)
+    elif name == "static_nonlinearity":
         sol = optimize.minimize_scalar(
             lambda b: chi2([b]), bounds=(lo[0], hi[0]), method="bounded", options={"xatol": 1e-7}
         )
@@ -464,7 +682,10 @@ def optimise_shared(
         ringdowns = full
         cache.clear()
         warm["tau"] = np.asarray(tau_start_s, float)
-        if name in ("static_nonlinearity", "baseline_drift"):
+        if not default and form in ("cubic", "quadratic"):
+            # fits without a shape term are cheap: polish on the full record
+            x = _newton_steps(chi2, x, 0.1 * _member_steps(names, x), lo, hi)
+        elif name in ("static_nonlinearity", "baseline_drift") and default:
             # one-parameter searches are cheap: polish on the full record
             w = 0.05 * (np.abs(x[0]) + (1e-4 if name == "static_nonlinearity" else 0.05))
             x = np.array(
@@ -483,11 +704,232 @@ def optimise_shared(
     return dict(zip(names, map(float, x))), res, cov
 
 
+def _member_steps(names, x):
+    """First simplex steps: 20 % of each fitted value, or the added parameter's small scale."""
+    return np.array(
+        [
+            max(0.2 * abs(v), _ADDED_STEP.get(n, 0.0), 1e-6 * abs(v) + 1e-12)
+            for n, v in zip(names, x)
+        ]
+    )
+
+
+def _nelder_mead(chi2, x0, steps, lo, hi, max_fev):
+    """Bounded Nelder-Mead from x0 with a simplex of the given steps (a local polish).
+
+    A step that would leave the bounds is taken the other way, so the simplex starts inside
+    them (a clipped vertex would collapse it onto the bound).
+    """
+    x0 = np.clip(np.asarray(x0, float), lo, hi)
+    steps = np.where(x0 + steps > hi, -steps, steps)
+    simplex = np.clip(np.vstack([x0, x0 + np.diag(steps)]), lo, hi)
+    sol = optimize.minimize(
+        lambda x: chi2(np.clip(x, lo, hi)),
+        x0,
+        method="Nelder-Mead",
+        bounds=list(zip(lo, hi)),
+        options={"initial_simplex": simplex, "maxfev": max_fev, "xatol": 1e-9, "fatol": 1e-3},
+    )
+    x = np.clip(sol.x, lo, hi)
+    return x if chi2(x) <= chi2(x0) else x0
+
+
+def _newton_steps(chi2, x0, steps, lo, hi, n_iter=4):
+    """Newton steps on chi2 from x0 with its gradient and Hessian by central differences.
+
+    For members whose parameters act (nearly) linearly on the data (a polynomial detector
+    response, a polynomial drift) chi2 is nearly quadratic in them, and a correlated valley that
+    a simplex crawls along is crossed in one or two steps. A step that does not lower chi2 ends
+    the iteration.
+    """
+    x = np.clip(np.asarray(x0, float), lo, hi)
+    f = chi2(x)
+    for _ in range(n_iter):
+        # the stencil's centre kept a step inside the bounds (the chi2 is clipped at them)
+        xc = np.clip(x, lo + steps, hi - steps)
+        if not np.array_equal(xc, x):
+            x, f = xc, chi2(xc)
+        k = x.size
+        g, hess = np.empty(k), np.empty((k, k))
+        for i in range(k):
+            ei = np.zeros(k)
+            ei[i] = steps[i]
+            fp, fm = chi2(x + ei), chi2(x - ei)
+            g[i] = (fp - fm) / (2 * steps[i])
+            hess[i, i] = (fp - 2 * f + fm) / steps[i] ** 2
+            for j in range(i):
+                ej = np.zeros(k)
+                ej[j] = steps[j]
+                hess[i, j] = hess[j, i] = (
+                    chi2(x + ei + ej) - chi2(x + ei - ej) - chi2(x - ei + ej) + chi2(x - ei - ej)
+                ) / (4 * steps[i] * steps[j])
+        try:
+            x_new = np.clip(x - np.linalg.solve(hess, g), lo, hi)
+        except np.linalg.LinAlgError:
+            break
+        f_new = chi2(x_new)
+        if not f_new < f:
+            break
+        done = f - f_new < 1e-3
+        x, f = x_new, f_new
+        if done:
+            break
+    return x
+
+
+def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
+    """Shared parameters of a higher family member (see :data:`FAMILIES`).
+
+    Members extending the default start from its fit (``start``) with the added parameters at 0;
+    a second exponential of the tail is searched like the first (fraction profiled inside a
+    search over log tau), then the first re-searched with the second held, then both polished
+    together. The AC-coupling undershoot (its amplitudes linear) is a 1-d search over log tau_hp.
+    """
+    if name == "baseline_drift" and form == "ac_coupling":
+        grid = np.log([2e-6, 5e-6, 1.5e-5, 5e-5, 2e-4, 1e-3, 1e-2])
+        vals = [chi2([np.exp(z)]) for z in grid]
+        b = int(np.argmin(vals))
+        sol = optimize.minimize_scalar(
+            lambda z: chi2([np.exp(z)]),
+            bounds=(grid[max(b - 1, 0)], grid[min(b + 1, grid.size - 1)]),
+            method="bounded",
+            options={"xatol": 1e-3},
+        )
+        return np.array([np.exp(sol.x if sol.fun <= vals[b] else grid[b])])
+    if start is None:
+        raise ValueError(f"the {form} form of {name} starts from the default member's fit")
+    start = dict(start)
+    if name == "second_mode":
+        # the default's tau_2 = tau_ratio tau is r = 1/tau_ratio, d = 0
+        start.setdefault("overlap", 1.0 / start["tau_ratio"])
+    x0 = np.array([start.get(n, 0.0) for n in names], float)
+    if name == "extinction_tail":
+        x = x0.copy()
+        x[2:] = _search_two_exponential(
+            name, lambda z: chi2([x[0], x[1], z[0], z[1]]), lo[2:], hi[2:]
+        )
+        x[:2] = _search_two_exponential(
+            name, lambda z: chi2([z[0], z[1], x[2], x[3]]), lo[:2], hi[:2]
+        )
+        # the two terms trade amplitude against time: polish jointly, the times in log
+        llo, lhi = (
+            np.r_[lo[0], np.log(lo[1]), lo[2], np.log(lo[3])],
+            np.r_[hi[0], np.log(hi[1]), hi[2], np.log(hi[3])],
+        )
+
+        def chi2_log(z):
+            return chi2([z[0], np.exp(z[1]), z[2], np.exp(z[3])])
+
+        z0 = np.r_[x[0], np.log(x[1]), x[2], np.log(x[3])]
+        steps = np.r_[0.3 * x[0] + 2e-3, 0.3, 0.3 * x[2] + 2e-3, 0.3]
+        z = _nelder_mead(chi2_log, z0, steps, llo, lhi, 300)
+        return np.r_[z[0], np.exp(z[1]), z[2], np.exp(z[3])]
+    steps = _member_steps(names, x0)
+    if form in ("cubic", "quadratic"):
+        return _newton_steps(chi2, x0, steps, lo, hi)
+    if name == "mode_beating":
+        dt = float(ringdowns.dt_s)
+        n_eff = resid_norm.shape[-1] if resid_norm is not None else ringdowns.n_samples
+        steps[0] = 0.1 / (n_eff * dt)  # a tenth of a periodogram bin
+    # restarts with a fresh simplex: the members' parameters are strongly correlated (e.g. the
+    # overlap r and the rate d: 1/tau varies by a factor < 2 over a line), where one simplex
+    # collapses early
+    x = x0
+    for _ in range(3):
+        f_old = chi2(x)
+        x = _nelder_mead(
+            chi2, x, _member_steps(names, x) if x is not x0 else steps, lo, hi, 40 * x0.size
+        )
+        if f_old - chi2(x) < 0.1:
+            break
+    return x
+
+
+@dataclass(frozen=True)
+class FamilyFit:
+    """The member of an effect's family the information criterion chose, and every member's score.
+
+    ``scores`` holds (form, chi2, k) for each member fitted, k counting every parameter the member
+    adds to the model (shared and per-transient); BIC = chi2 + k ln n on the transient block.
+    """
+
+    name: str
+    form: str
+    label: str
+    params: dict
+    result: TransientResult
+    cov: np.ndarray | None
+    k: int
+    n: int
+    scores: tuple
+
+
+def fit_family(
+    name,
+    ringdowns,
+    t_cut_rows,
+    rows_of,
+    base: TransientSpec,
+    tau_start_s,
+    resid_norm=None,
+    chi2_before=None,
+    with_cov: bool = False,
+    search_bin: int = 8,
+) -> FamilyFit:
+    """Fit effect ``name``'s family member by member and keep the lowest BIC (chi2 + k ln n).
+
+    Higher members are fitted only if the default member already beats the model without the
+    effect (``chi2_before``; Delta BIC > 0): where the effect's simplest form is not supported,
+    more flexible forms would only chase noise and cost fits. The covariance (``with_cov``) is
+    computed for the chosen member only.
+    """
+    n_rows = len(rows_of)
+    scores, fits = [], {}
+    start = None
+    for form, _, pars in FAMILIES[name]:
+        per_row = n_rows * member_row_params(name, form)
+        params, res, _ = optimise_shared(
+            name,
+            ringdowns,
+            t_cut_rows,
+            rows_of,
+            base,
+            tau_start_s,
+            resid_norm,
+            search_bin=search_bin,
+            with_cov=False,
+            form=form,
+            start=start,
+        )
+        k = len(pars) + per_row
+        n = int(res.n_used.sum())
+        chi2 = float(res.chi2.sum())
+        scores.append((form, chi2, k))
+        fits[form] = (params, res)
+        start = {**(start or {}), **params}  # a member starts from the ones before it
+        if len(scores) == 1:
+            if chi2_before is not None and chi2_before - chi2 - k * np.log(n) <= 0:
+                break
+    n = int(fits[scores[0][0]][1].n_used.sum())
+    best = min(scores, key=lambda s: s[1] + s[2] * np.log(n))
+    params, res = fits[best[0]]
+    cov = None
+    if with_cov:
+        cov = shared_covariance(name, ringdowns, t_cut_rows, rows_of, base, params, res.tau_s)
+    return FamilyFit(
+        name, best[0], family_member(name, best[0])[1], params, res, cov, best[2], n, tuple(scores)
+    )
+
+
 def shared_covariance(
     name, ringdowns, t_cut_rows, rows_of, base: TransientSpec, params: dict, tau_start_s
 ):
-    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2)."""
-    names = [s[0] for s in SHARED[name]]
+    """Covariance of extension ``name``'s shared parameters at ``params`` (profiled chi2).
+
+    The parameters' names say which member of the effect's family they belong to.
+    """
+    pars = family_member(name, form_of(name, params))[2]
+    names = [s[0] for s in pars]
     warm = {"tau": np.asarray(tau_start_s, float)}
 
     def chi2(x):
@@ -500,8 +942,8 @@ def shared_covariance(
         res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec, warm["tau"])
         return float(res.chi2.sum())
 
-    lo = np.array([s[2] for s in SHARED[name]])
-    hi = np.array([s[3] for s in SHARED[name]])
+    lo = np.array([s[2] for s in pars])
+    hi = np.array([s[3] for s in pars])
     return _shared_covariance(chi2, np.array([params[n] for n in names], float), lo, hi)
 
 
@@ -578,6 +1020,9 @@ def _names(kind, profile_name, extras):
         names += ["etalon_amplitude_per_m", "etalon_period_hz", "etalon_phase_rad"]
     if "neighbour_line" in extras:
         names += ["neighbour_offset_hz", "neighbour_ratio"]
+    for form, (effect, _, added) in SPECTRUM_FORMS.items():
+        if form in extras and effect in extras:
+            names += list(added)
     return tuple(names)
 
 
@@ -589,12 +1034,14 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
     det = nu_hz - nu_ref_hz
     g = profile(profile_name, det, p["position_offset_hz"], doppler_hwhm_hz, **shape)
     if "neighbour_offset_hz" in p:
+        ws = p.get("neighbour_width_scale", 1.0)
+        n_shape = {k: (v * ws if k in ("gamma0_hz", "gamma2_hz") else v) for k, v in shape.items()}
         g = g + p["neighbour_ratio"] * profile(
             profile_name,
             det,
             p["position_offset_hz"] + p["neighbour_offset_hz"],
-            doppler_hwhm_hz,
-            **shape,
+            doppler_hwhm_hz * ws,
+            **n_shape,
         )
     if kind == "absorption":
         y = p["line_area"] * g.real + p["baseline"] + p.get("slope", 0.0) * det
@@ -604,6 +1051,10 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
         y = y + p["etalon_amplitude_per_m"] * np.sin(
             2 * np.pi * det / p["etalon_period_hz"] + p["etalon_phase_rad"]
         )
+        if "etalon2_amplitude_per_m" in p:
+            y = y + p["etalon2_amplitude_per_m"] * np.sin(
+                4 * np.pi * det / p["etalon_period_hz"] + p["etalon2_phase_rad"]
+            )
     return y
 
 
@@ -616,6 +1067,8 @@ _LOWER_BOUNDS = {
     "etalon_period_hz": 1e8,
     "neighbour_ratio": 0.0,
     "etalon_amplitude_per_m": 0.0,
+    "etalon2_amplitude_per_m": 0.0,
+    "neighbour_width_scale": 0.2,
 }
 
 
@@ -629,6 +1082,8 @@ def _absolute_scales(doppler_hwhm_hz) -> dict:
         "baseline": 0.0,
         "etalon_amplitude_per_m": 1e-8,
         "neighbour_ratio": 1e-4,
+        "etalon2_amplitude_per_m": 1e-8,
+        "etalon2_phase_rad": 1.0,
     }
 
 
@@ -654,6 +1109,9 @@ def _default_start(kind, nu_hz, y, doppler_hwhm_hz) -> dict:
         "etalon_phase_rad": 0.0,
         "neighbour_offset_hz": 1e9,
         "neighbour_ratio": 0.0,
+        "etalon2_amplitude_per_m": 0.0,
+        "etalon2_phase_rad": 0.0,
+        "neighbour_width_scale": 1.0,
     }
     return default
 
@@ -706,13 +1164,13 @@ def fit_spectrum_extended(
     names_all = _names(kind, profile_name, extras)
     names = tuple(n for n in names_all if n not in fixed)
     default = _default_start(kind, nu_hz, y, doppler_hwhm_hz)
+    user_start = start is not None
     start = {**default, **(start or {})}
     lo = _LOWER_BOUNDS
     lo_v = np.array([lo.get(n, -np.inf) for n in names])
     span = float(np.ptp(nu_hz))
-    hi_v = np.array(
-        [{"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5}.get(n, np.inf) for n in names]
-    )
+    upper = {"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5, "neighbour_width_scale": 5.0}
+    hi_v = np.array([upper.get(n, np.inf) for n in names])
     nonsc = _absolute_scales(doppler_hwhm_hz)
 
     def run(st):
@@ -743,7 +1201,18 @@ def fit_spectrum_extended(
         return float(2 * sol.cost), sol.x * sc
 
     starts = [start]
-    if "etalon" in extras or "neighbour_line" in extras:
+    free_forms = [
+        f for f in extras if f in SPECTRUM_FORMS and any(n in names for n in SPECTRUM_FORMS[f][2])
+    ]
+    if free_forms:
+        # a higher family member starts from its default member's fit
+        if not user_start:
+            base = tuple(e for e in extras if e not in SPECTRUM_FORMS)
+            fit0 = fit_spectrum_extended(
+                kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, base, fixed=fixed
+            )
+            starts = [{**start, **_form_start(fit0, free_forms, u, nu_ref_hz)}]
+    elif "etalon" in extras or "neighbour_line" in extras:
         starts = _extra_starts(
             kind, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras, start, span
         )
@@ -802,3 +1271,65 @@ def _sinusoid_at(det, r, u, period):
     a = np.stack([np.sin(x), np.cos(x)], 1) / u[:, None]
     c, *_ = np.linalg.lstsq(a, r / u, rcond=None)
     return float(np.hypot(*c)), float(np.arctan2(c[1], c[0]))
+
+
+@dataclass(frozen=True)
+class SpectrumFamilyFit:
+    """The member of a spectrum-level effect's family the BIC chose, and each member's score.
+
+    ``form`` is None for the default member, else a key of :data:`SPECTRUM_FORMS`; ``scores``
+    holds (form label, chi2, number of line-fit parameters) per member fitted.
+    """
+
+    effect: str
+    form: str | None
+    label: str
+    fit: SpectrumFit
+    scores: tuple
+
+
+def fit_spectrum_family(
+    effect, nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz, extras=(), chi2_before=None
+) -> SpectrumFamilyFit:
+    """Fit ``effect`` (etalon or neighbour_line) on top of ``extras``, member by member.
+
+    The default member first; its higher member (:data:`SPECTRUM_FORMS`) starts from it, with
+    the added harmonic's amplitude and phase from the default fit's residuals at half the period,
+    or the neighbour's width scale at 1. The member with the lowest BIC (chi2 + k ln n) is kept;
+    the higher member is fitted only where the default beats ``chi2_before`` (Delta BIC > 0).
+    """
+    args = ("absorption", nu_hz, y, u, profile_name, doppler_hwhm_hz, nu_ref_hz)
+    extras = tuple(extras)
+    fit0 = fit_spectrum_extended(*args, (*extras, effect))
+    n = fit0.n
+    scores = [(SPECTRUM_DEFAULT_LABEL[effect], fit0.chi2, fit0.k)]
+    best = (None, SPECTRUM_DEFAULT_LABEL[effect], fit0)
+    k_before = len(_names("absorption", profile_name, extras))
+    if chi2_before is not None and chi2_before - fit0.chi2 - (fit0.k - k_before) * np.log(n) <= 0:
+        return SpectrumFamilyFit(effect, None, best[1], fit0, tuple(scores))
+    for form, (eff, label, _) in SPECTRUM_FORMS.items():
+        if eff != effect:
+            continue
+        start = _form_start(fit0, [form], np.asarray(u, float), nu_ref_hz)
+        fit1 = fit_spectrum_extended(*args, (*extras, effect, form), start=start)
+        scores.append((label, fit1.chi2, fit1.k))
+        if fit1.chi2 + fit1.k * np.log(n) < best[2].chi2 + best[2].k * np.log(n):
+            best = (form, label, fit1)
+    return SpectrumFamilyFit(effect, best[0], best[1], best[2], tuple(scores))
+
+
+def _form_start(fit0: SpectrumFit, forms, u, nu_ref_hz) -> dict:
+    """Start of a higher spectrum member from its default member's fit ``fit0``.
+
+    The second harmonic's amplitude and phase from the residuals at half the fringe period
+    (at amplitude 0 the phase would have no gradient); the neighbour's width scale at 1.
+    """
+    start = dict(zip(fit0.names, fit0.values))
+    if "etalon_harmonic" in forms:
+        r = -fit0.residuals_norm * u  # data minus model
+        det = fit0.nu_hz - nu_ref_hz
+        amp, ph = _sinusoid_at(det, r, u, 0.5 * start["etalon_period_hz"])
+        start.update(etalon2_amplitude_per_m=max(amp, 1e-12), etalon2_phase_rad=ph)
+    if "neighbour_width" in forms:
+        start["neighbour_width_scale"] = 1.0
+    return start
