@@ -1227,11 +1227,9 @@ def fit_spectrum_extended(
     steps = 1e-6 * np.maximum(
         np.abs(theta), np.array([nonsc.get(n, 1e-3 * abs(t) + 1e-30) for n, t in zip(names, theta)])
     )
-    jac = central_jacobian(model, theta, steps) / u[:, None]
-    try:
-        cov = covariance_from_fisher(jac.T @ jac)
-    except np.linalg.LinAlgError:
-        cov = np.full((theta.size, theta.size), np.nan)
+    # a width within 1e-6 Doppler HWHM (0.2 kHz here) of 0 is on its bound
+    width_tol = np.array([1e-6 * doppler_hwhm_hz if n in _WIDTHS else 0.0 for n in names])
+    cov = _covariance_off_bounds(model, theta, steps, u, lo_v, hi_v, width_tol)
     r = (model(theta) - y) / u
     return SpectrumFit(
         kind=kind,
@@ -1244,6 +1242,38 @@ def fit_spectrum_extended(
         residuals_norm=r,
         nu_hz=nu_hz,
     )
+
+
+_WIDTHS = ("gamma0_hz", "gamma2_hz", "nu_vc_hz")
+
+
+def _covariance_off_bounds(model, theta, steps, u, lo, hi, tol) -> np.ndarray:
+    """Covariance from the Jacobian, with the parameters that sit on a bound held there.
+
+    A parameter on its bound (Gamma2 or nu_VC at 0 when the data want less narrowing than the
+    model allows) has no Gaussian uncertainty, and a central difference across the bound leaves
+    the profile's domain (NaN). The others get the covariance conditional on it (the active
+    constraint's treatment in bounded least squares); its own row and column are NaN. On a bound:
+    within a central step or ``tol`` of it.
+    """
+    near = np.maximum(steps, tol)
+    on_bound = (np.isfinite(lo) & (theta - lo <= near)) | (np.isfinite(hi) & (hi - theta <= near))
+    free = ~on_bound
+    cov = np.full((theta.size, theta.size), np.nan)
+    if not free.any():
+        return cov
+
+    def model_free(th_free):
+        th = theta.copy()
+        th[free] = th_free
+        return model(th)
+
+    jac = central_jacobian(model_free, theta[free], steps[free]) / u[:, None]
+    try:
+        cov[np.ix_(free, free)] = covariance_from_fisher(jac.T @ jac)
+    except np.linalg.LinAlgError:
+        pass
+    return cov
 
 
 def _periodogram_periods(det, z, span, n_best=3):
