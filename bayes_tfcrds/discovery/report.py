@@ -130,7 +130,7 @@ def _candidates_tables(rep, result) -> None:
                 "Delta chi2",
                 "k",
                 "block",
-                "share of open misfit removed",
+                "share of open misfit removed (gaps it worsens elsewhere)",
                 "note",
             ],
             [
@@ -140,7 +140,8 @@ def _candidates_tables(rep, result) -> None:
                     f"{c.delta_chi2:.1f}",
                     c.k,
                     c.block,
-                    _pct(c.explained) if c.explained is not None else "not tried",
+                    (_pct(c.explained) if c.explained is not None else "not tried")
+                    + (f"; worsens {', '.join(c.worsens)}" if c.worsens else ""),
                     c.note,
                 ]
                 for c in cands

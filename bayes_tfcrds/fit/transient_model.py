@@ -51,8 +51,12 @@ def model_transients(
     k = min(cols.shape[1], coef.shape[1])
     v = np.einsum("nk,nkt->nt", np.asarray(coef, float)[:, :k], cols[:, :k])
     sh = spec.shared
-    if "baseline_drift" in sh:
-        v = v + sh["baseline_drift"]["slope_v_per_s"] * (t - t[0])[None, :]
+    drift = sh.get("baseline_drift", {})
+    if "slope_v_per_s" in drift:  # the polynomial members (AC coupling is a column above)
+        dt = (t - t[0])[None, :]
+        v = v + drift["slope_v_per_s"] * dt + drift.get("curvature_v_per_s2", 0.0) * dt * dt
     if "static_nonlinearity" in sh:
-        v = v + sh["static_nonlinearity"]["beta"] * v * v / V_REF
+        u = v / V_REF
+        nl = sh["static_nonlinearity"]
+        v = v + nl["beta"] * v * u + nl.get("gamma", 0.0) * v * u * u
     return np.where(mask, v, 0.0), np.array(mask)

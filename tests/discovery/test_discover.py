@@ -7,9 +7,9 @@ the D2 chain) without telling it what is hidden. Effect sizes are the simulator'
 (physically plausible, and large enough at this size), except a 1 % second transverse mode
 (see benchmarks/discovery_confusion.py for why).
 
-"Gaps at the noise level" means |z| < 3 for the transient and spectrum chi2 (z = (chi2 - dof) /
-sqrt(2 dof)) and for A/A_ref - 1 against its fit uncertainty: a 3-sigma allowance, so each such
-check fails by chance in about 0.3 % of seeds.
+"Gaps at the noise level" means |z| < 3 for the transient and spectrum chi2 (z the normal score of
+the chi2, Wilson-Hilferty) and for A/A_ref - 1 against its fit uncertainty (two-sided): a 3-sigma
+allowance, so each such check fails by chance in about 0.3 % of seeds.
 """
 
 from __future__ import annotations

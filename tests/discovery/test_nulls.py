@@ -80,6 +80,30 @@ def test_forward_model_reproduces_the_recorded_transients(effects, shared):
     assert abs(z.std() - 1.0) < 0.02 and abs(z.mean()) < 0.02, (z.std(), z.mean())
 
 
+def test_forward_model_of_the_higher_family_members():
+    # a cubic detector and a quadratic drift written here, applied to a clean simulated record
+    bundle, _ = simulate_campaign(
+        ["letter-D2"], np.random.default_rng(6), CAMPAIGN, {}, line_effects_default=False
+    )
+    rd = bundle.configs["D2"].ringdowns
+    t = rd.time_s
+    beta, gamma, slope, curv = -2e-3, 4e-3, 2.0, 3e4
+    v = rd.signal_v + slope * (t - t[0]) + curv * (t - t[0]) ** 2
+    rd = replace(rd, signal_v=v + beta * v**2 + gamma * v**3)
+    shared = {
+        "static_nonlinearity": {"beta": beta, "gamma": gamma},
+        "baseline_drift": {"slope_v_per_s": slope, "curvature_v_per_s2": curv},
+    }
+    spec = TransientSpec(shared=shared)
+    rows = np.arange(rd.n_points)
+    res = fit_transient_rows(rd, np.full(rows.size, 2e-6), rows, spec)
+    model, mask = model_transients(t, 2e-6, spec, res.tau_s, res.coef)
+    z = ((rd.signal_v - model) / rd.noise_v[:, None])[mask]
+    # the recorded noise passes the cubic with slope ~1.000 (2 beta V + 3 gamma V^2 ~ 2e-3): sd
+    # 1 to 2 %; the cubic term left out leaves 4e-3 x 0.6^3 V ~ 7 noise sd per sample
+    assert abs(z.std() - 1.0) < 0.02 and abs(z.mean()) < 0.02, (z.std(), z.mean())
+
+
 def test_bootstrap_finds_the_analytic_null_where_it_is_exact():
     bundle, _ = simulate_campaign(
         ["letter-D2"], np.random.default_rng(12), CAMPAIGN, {}, line_effects_default=False
@@ -108,3 +132,38 @@ def test_bootstrap_finds_the_analytic_null_where_it_is_exact():
 def test_alpha_spending_sums_to_at_most_alpha():
     levels = [step_alpha(0.05, s) for s in range(1, 40)]
     assert sum(levels) <= 0.05 and levels[0] == 0.025 and all(np.diff(levels) < 0)
+
+
+def test_bootstrap_analyses_each_replicate_with_an_h_drawn_from_its_uncertainty():
+    from bayes_tfcrds.discovery.nulls import h_drawn_state
+    from bayes_tfcrds.discovery.workflow import _start_state
+    from bayes_tfcrds.physics.transfer_function import outside_support
+
+    bundle, _ = simulate_campaign(
+        ["letter-D2"],
+        np.random.default_rng(8),
+        CAMPAIGN,
+        {"transfer_function": {}},
+        line_effects_default=False,
+    )
+    cfg = bundle.configs["D2"]
+    plain = ModelState(ExperimentModel())
+    assert h_drawn_state(plain, np.random.default_rng(0)) is plain  # no H, nothing to draw
+    state = _start_state(bundle, cfg, "transfer_function,window_history", (2e-6, 4e-6, 6e-6))
+    cal = state.calibration
+    rng = np.random.default_rng(1)
+    draws = [h_drawn_state(state, rng).calibration for _ in range(400)]
+    # the beat-note parameters (those not refined) follow the beat fit's covariance, the refined
+    # ones the refinement's; 400 draws give each sd to 1/sqrt(800) = 3.5 %, so 15 % is 4 of those
+    beat_free = [n for n in cal.beat.free if cal.refined is None or n not in cal.refined.free]
+    src = [(n, cal.beat, list(cal.beat.free).index(n)) for n in beat_free]
+    if cal.refined is not None:
+        src += [(n, cal.refined, i) for i, n in enumerate(cal.refined.free)]
+    for name, fit, i in src:
+        x = np.array([getattr(d.params, name) for d in draws])
+        sd = np.sqrt(fit.cov[i, i])
+        assert abs(x.std() / sd - 1) < 0.15, (name, x.std(), sd)
+        assert abs(x.mean() - getattr(fit.params, name)) < 4 * sd / np.sqrt(400), name
+        assert not any(outside_support(d.params, [name]) for d in draws)
+    # the data's own analysis keeps its H: drawing never changes the state it was given
+    assert state.calibration is cal
