@@ -1,9 +1,10 @@
 """A spectrum fit whose shape parameter lands on its bound keeps the others' uncertainties.
 
 Speed dependence fitted to a line whose core is broader than a Voigt's (a weak, wider Gaussian
-underneath) drives Gamma2 to its bound 0 (speed dependence can only narrow the core). The fit there is the Voigt fit, so the
-covariance of the other parameters must be the Voigt fit's (the active constraint holds Gamma2 at
-0); before, one central difference left the profile's domain and every uncertainty was NaN.
+underneath) drives Gamma2 to its bound 0 (speed dependence can only narrow the core). The fit
+there is the Voigt fit, so the covariance of the other parameters must be the Voigt fit's (the
+active constraint holds Gamma2 at 0); before, one central difference left the profile's domain
+and every uncertainty was NaN.
 """
 
 from __future__ import annotations
