@@ -85,8 +85,8 @@ N_TIME_BINS = 12
 DEFAULT_ALPHA = 0.05
 #: a candidate is added only if it removes at least this fraction of the open misfit of its block
 EXPLAIN_FRACTION = 0.5
-#: a gap of another block is made worse by a candidate when its model leaves it open with a
-#: calibrated z higher by more than this (one null standard deviation)
+#: a gap of the CMDS or the beat note is made worse by a candidate when its model leaves it open
+#: with a calibrated z higher by more than this (one null standard deviation); reported only
 WORSEN_MARGIN = 1.0
 #: blocks measured by other instruments than the ring-downs: the CMDS reference, the beat note
 INDEPENDENT_BLOCKS = ("reference", "beat")
@@ -601,7 +601,7 @@ class Candidate:
     state: ModelState | None
     note: str = ""
     explained: float | None = None  # fraction of its blocks' open misfit removed, when tried
-    worsens: tuple = ()  # gaps of other blocks its model opens or makes worse, when tried
+    worsens: tuple = ()  # gaps of the CMDS or beat note its model leaves open and worse, when tried
 
 
 def _fail(effect, note):

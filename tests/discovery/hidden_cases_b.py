@@ -138,7 +138,7 @@ def _base(rng, campaign):
     return bundle, truth, camp
 
 
-def _with(bundle, signal_v=None, tau_change=None, cmds=None, beat=None):
+def _with(bundle, signal_v=None, cmds=None, beat=None):
     cfg = bundle.configs[CONFIG]
     rd = cfg.ringdowns
     new = replace(cfg)
