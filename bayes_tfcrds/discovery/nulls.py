@@ -159,17 +159,12 @@ def h_drawn_state(state, rng):
     if cal.refined is None:
         return replace(state, calibration=replace(cal, beat=replace(beat, params=p)))
     ref = cal.refined
-    base = ref.params.with_vector(
-        p.as_vector(_others(beat.free, ref.free)), _others(beat.free, ref.free)
-    )
+    others = tuple(n for n in beat.free if n not in ref.free)
+    base = ref.params.with_vector(p.as_vector(others), others)
     q = _draw_params(base, ref.free, ref.cov, rng)
     if q is None:
         return state
     return replace(state, calibration=replace(cal, refined=replace(ref, params=q)))
-
-
-def _others(names, refined) -> tuple:
-    return tuple(n for n in names if n not in refined)
 
 
 @dataclass(frozen=True)

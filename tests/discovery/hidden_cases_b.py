@@ -151,13 +151,18 @@ def _with(bundle, signal_v=None, cmds=None, beat=None):
     return replace(bundle, configs={**bundle.configs, CONFIG: new})
 
 
+def _ideal_records(t_s, tau_s):
+    """Ideal-detector ring-downs (steady level 1): 1 before extinction, exp(-t/tau) after."""
+    tp = np.clip(t_s, 0.0, None)[None, :]
+    return np.where(np.asarray(t_s)[None, :] < 0, 1.0, np.exp(-tp / np.asarray(tau_s)[:, None]))
+
+
 def _clean_parts(bundle, truth, camp):
     """Sample times (s), true decay times (s) and the noise-free ideal record (V)."""
     rd = bundle.configs[CONFIG].ringdowns
     t = rd.time_s
     tau = np.asarray(truth["configs"][CONFIG]["tau_s"], float)
-    y = np.where(t[None, :] < 0, 1.0, np.exp(-np.clip(t, 0, None)[None, :] / tau[:, None]))
-    return t, tau, camp.amplitude_v * y
+    return t, tau, camp.amplitude_v * _ideal_records(t, tau)
 
 
 # --------------------------------------------------------------------------- transient effects
@@ -197,9 +202,7 @@ def second_mode(rng, campaign, fraction=1e-2, offset_hz=61e6, loss_factor=1.5):
     loss = truth["alpha_loss_per_m"]
     alpha2 = _voigt_alpha(rd.nu_hz + offset_hz, lt)
     tau2 = 1.0 / (C * (loss_factor * loss + alpha2))
-    tp = np.clip(t, 0.0, None)[None, :]
-    y2 = np.where(t[None, :] < 0, 1.0, np.exp(-tp / tau2[:, None]))
-    sig = rd.signal_v + fraction * (camp.amplitude_v * y2 - clean)
+    sig = rd.signal_v + fraction * (camp.amplitude_v * _ideal_records(t, tau2) - clean)
     return _with(bundle, signal_v=sig), truth
 
 
@@ -289,7 +292,8 @@ def chain_response(t_s, tau_s, c=CHAIN):
     return out
 
 
-def _chain_bundle(rng, campaign):
+def transfer_function(rng, campaign):
+    """The Eq. 2 chain (hidden from a model without H, or with H and the letter window)."""
     bundle, truth, camp = _base(rng, campaign)
     t, tau, clean = _clean_parts(bundle, truth, camp)
     cfg = bundle.configs[CONFIG]
@@ -300,11 +304,6 @@ def _chain_bundle(rng, campaign):
     # the base beat note measured an ideal detector: its noise is relative, so scale it
     beat = replace(tf, b12_v=tf.b12_v * np.abs(h), b12_u_v=tf.b12_u_v * np.abs(h))
     return _with(bundle, signal_v=sig, beat=beat), truth
-
-
-def transfer_function(rng, campaign):
-    """The Eq. 2 chain (hidden from a model without H, or with H and the letter window)."""
-    return _chain_bundle(rng, campaign)
 
 
 # --------------------------------------------------------------------------- spectrum effects
@@ -322,9 +321,7 @@ def _with_spectrum(bundle, truth, camp, d_alpha, d_shift_hz):
     t, tau, clean = _clean_parts(bundle, truth, camp)
     cfg = bundle.configs[CONFIG]
     tau_new = 1.0 / (1.0 / tau + C * d_alpha)
-    tp = np.clip(t, 0.0, None)[None, :]
-    y_new = np.where(t[None, :] < 0, 1.0, np.exp(-tp / tau_new[:, None]))
-    sig = cfg.ringdowns.signal_v + camp.amplitude_v * y_new - clean
+    sig = cfg.ringdowns.signal_v + camp.amplitude_v * _ideal_records(t, tau_new) - clean
     cm = cfg.cmds
     cmds = replace(
         cm,
