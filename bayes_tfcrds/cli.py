@@ -510,6 +510,14 @@ def cmd_compare(args) -> int:
         labs = [r.lab for r in results]
         corr = ci.read_correlations(args.correlations, labs) if args.correlations else None
         ref = Reference()
+        if args.random_effects is not None:
+            if args.reference is not None:
+                raise Refused("give either --reference or --random-effects, not both", 2)
+            ref = Reference(
+                "random-effects", estimator=args.random_effects, knapp_hartung=args.knapp_hartung
+            )
+        elif args.knapp_hartung:
+            raise Refused("--knapp-hartung adjusts a --random-effects consensus; add one", 2)
         if args.reference is not None:
             value = args.reference.split(",")
             try:
@@ -523,16 +531,17 @@ def cmd_compare(args) -> int:
             corr,
             ref,
             args.quantity,
-            ci.unit_of(args.quantity),
+            ci.common_unit(results, args.quantity),
         )
     except ValueError as exc:  # ComparisonInputError is one; bad names, singular correlations
         raise Refused(str(exc)) from None
     written = write_comparison(comp, results, args.output, seed=args.seed)
     c, r = comp.consistency, comp.reference
     _say(f"wrote {', '.join(str(p) for p in written)}")
+    dark = f", tau = {r.tau:.3g} {comp.unit}" if r.method.startswith("random") else ""
     _result(
-        f"x_ref = {r.value:.6e} +/- {r.u:.2e} {comp.unit} ({r.method}); chi2 = {c.chi2:.3f} "
-        f"({c.dof} dof, p = {c.p_value:.3g}, R_B = {c.birge_ratio:.3f})"
+        f"x_ref = {r.value:.6e} +/- {r.u:.2e} {comp.unit} ({r.method}{dark}); chi2 = "
+        f"{c.chi2:.3f} ({c.dof} dof, p = {c.p_value:.3g}, R_B = {c.birge_ratio:.3f})"
     )
     return 0
 
@@ -1087,15 +1096,27 @@ def _add_compare(sub) -> None:
     )
     sp.add_argument(
         "--quantity",
-        choices=["intensity", "line_area", "ratio"],
+        choices=["intensity", "line_area", "ratio", "other"],
         default="intensity",
-        help="S(296 K) in cm/molecule, A in cm^-2, or A/A_ref",
+        help="S(296 K) in cm/molecule, A in cm^-2, A/A_ref, or another measurand given as CSV "
+        "rows in one unit",
     )
     sp.add_argument(
         "--reference",
         metavar="LAB|VALUE,u",
         help="reference value: a laboratory's result, or a stated value and its standard u in "
         "the comparison unit (default: the weighted mean)",
+    )
+    sp.add_argument(
+        "--random-effects",
+        choices=["DL", "REML", "ML"],
+        help="reference value: the random-effects consensus with dark uncertainty tau estimated "
+        "by DerSimonian-Laird, REML or ML (for results that fail the chi2 test)",
+    )
+    sp.add_argument(
+        "--knapp-hartung",
+        action="store_true",
+        help="with --random-effects: Knapp-Hartung u and a Student-t 95 %% interval",
     )
     sp.add_argument("--correlations", metavar="FILE", help="CSV lab_a,lab_b,r of shared inputs")
     sp.add_argument("-o", "--output", required=True, help="output folder")

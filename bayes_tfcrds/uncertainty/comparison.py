@@ -6,9 +6,12 @@ reference value is a linear function of the results plus an independent part,
 
     x_ref = a^T x + c,   u_c = standard uncertainty of c (independent of every x_i),
 
-which covers the three choices of a comparison: the generalised-least-squares weighted mean
-(a = V^-1 1 / (1^T V^-1 1), c = 0), one laboratory's result (a = e_j) and a stated value
-(a = 0, c with its u). Every statistic then follows from V alone:
+which covers the choices of a comparison: the generalised-least-squares weighted mean
+(a = V^-1 1 / (1^T V^-1 1), c = 0), one laboratory's result (a = e_j), a stated value
+(a = 0, c with its u), and the random-effects consensus for results that scatter beyond their
+u: the GLS mean under Sigma = V + tau^2 I, tau the dark uncertainty (DerSimonian-Laird, REML or
+ML; optional Knapp-Hartung interval; see :mod:`.random_effects`). Every statistic then follows
+from V (from Sigma for the random-effects consensus):
 
     d = x - 1 x_ref = B x - 1 c,  B = I - 1 a^T,   cov(d) = B V B^T + u_c^2 1 1^T,
 
@@ -27,6 +30,13 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import stats
 
+from bayes_tfcrds.uncertainty.random_effects import (
+    ESTIMATORS,
+    coverage_interval,
+    dark_uncertainty,
+    knapp_hartung_factor,
+)
+
 #: coverage factor of the expanded uncertainties U(d) and of E_n
 K_EXPANDED = 2.0
 #: significance level of the chi-squared consistency test
@@ -37,8 +47,10 @@ ALPHA = 0.05
 class Reference:
     """How the reference value is chosen.
 
-    kind: 'weighted-mean' (GLS mean of all results), 'laboratory' (the result of ``lab``) or
+    kind: 'weighted-mean' (GLS mean of all results), 'laboratory' (the result of ``lab``),
     'value' (a stated ``value`` with standard uncertainty ``u``, independent of the results),
+    or 'random-effects' (the consensus with dark uncertainty tau by ``estimator``, 'DL', 'REML'
+    or 'ML'; ``knapp_hartung`` scales its u and takes the interval from t with n - 1 dof).
     value and u in the unit of the comparison.
     """
 
@@ -46,16 +58,26 @@ class Reference:
     lab: str | None = None
     value: float | None = None
     u: float | None = None
+    estimator: str = "REML"
+    knapp_hartung: bool = False
 
 
 @dataclass(frozen=True)
 class ReferenceValue:
-    """The reference value x_ref, its standard uncertainty and the weights a_i of the results."""
+    """The reference value x_ref, its standard uncertainty and the weights a_i of the results.
+
+    tau is the dark uncertainty of a random-effects consensus (0 otherwise), interval the 95 %
+    coverage interval (normal quantile, or Student's t with ``dof`` for Knapp-Hartung; dof None
+    means infinite), all in the unit of the comparison.
+    """
 
     method: str
     value: float
     u: float
     weights: tuple
+    tau: float = 0.0
+    interval: tuple = ()
+    dof: float | None = None
 
 
 @dataclass(frozen=True)
@@ -200,11 +222,35 @@ def reference_weights(labs, cov, reference: Reference) -> tuple[np.ndarray, floa
 
 
 def reference_value(x, cov, a, c: float, u_c: float, method: str) -> ReferenceValue:
-    """x_ref = a^T x + c with u^2 = a^T V a + u_c^2."""
+    """x_ref = a^T x + c with u^2 = a^T V a + u_c^2, and its normal 95 % interval."""
     a = np.asarray(a, dtype=float)
-    return ReferenceValue(
-        method, float(a @ np.asarray(x) + c), float(np.sqrt(a @ cov @ a + u_c**2)), tuple(a)
-    )
+    value = float(a @ np.asarray(x) + c)
+    u = float(np.sqrt(a @ cov @ a + u_c**2))
+    return ReferenceValue(method, value, u, tuple(a), interval=coverage_interval(value, u, None))
+
+
+def random_effects_reference(x, cov, estimator: str, knapp_hartung: bool):
+    """The random-effects consensus and Sigma = V + tau^2 I, the covariance its DoE use.
+
+    x_ref is the GLS mean under Sigma; u^2 = 1 / (1^T Sigma^-1 1), times q (Knapp-Hartung) when
+    asked, with the interval from t_{n-1}.
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"unknown estimator {estimator!r}; use one of {', '.join(ESTIMATORS)}")
+    x = np.asarray(x, dtype=float)
+    tau = dark_uncertainty(x, cov, estimator)
+    sigma = cov + tau**2 * np.eye(x.size)
+    a = gls_weights(sigma)
+    value = float(a @ x)
+    u = float(np.sqrt(a @ sigma @ a))
+    dof = None
+    method = f"random effects ({estimator})"
+    if knapp_hartung:
+        u *= knapp_hartung_factor(x, sigma)
+        dof = float(x.size - 1)
+        method = f"random effects ({estimator}, Knapp-Hartung)"
+    ref = ReferenceValue(method, value, u, tuple(a), tau, coverage_interval(value, u, dof), dof)
+    return ref, sigma
 
 
 def degrees_of_equivalence(x, cov, a, c: float = 0.0, u_c: float = 0.0):
@@ -260,7 +306,10 @@ def compare(
     correlation : array (n, n), optional
         Declared correlation matrix of the results (identity when None).
     reference : Reference
-        Weighted mean (default), one laboratory, or a stated value with u.
+        Weighted mean (default), one laboratory, a stated value with u, or the random-effects
+        consensus. For the last, the degrees of equivalence use Sigma = V + tau^2 I: a result's
+        d is judged against its own u and the dark uncertainty that the consensus model gives
+        every laboratory (as the NIST Consensus Builder does); pairs use V alone.
     """
     labs = tuple(str(lab) for lab in labs)
     x = np.asarray(x, dtype=float)
@@ -268,9 +317,15 @@ def compare(
         raise ValueError("a comparison needs at least two results with different names")
     r = np.eye(x.size) if correlation is None else np.asarray(correlation, dtype=float)
     cov = covariance_matrix(u, r)
-    a, c, u_c = reference_weights(labs, cov, reference)
-    ref = reference_value(x, cov, a, c, u_c, _method_name(reference))
-    d, u_d = degrees_of_equivalence(x, cov, a, c, u_c)
+    if reference.kind == "random-effects":
+        ref, cov_doe = random_effects_reference(
+            x, cov, reference.estimator, reference.knapp_hartung
+        )
+        a, c, u_c = np.asarray(ref.weights), 0.0, 0.0
+    else:
+        a, c, u_c = reference_weights(labs, cov, reference)
+        ref, cov_doe = reference_value(x, cov, a, c, u_c, _method_name(reference)), cov
+    d, u_d = degrees_of_equivalence(x, cov_doe, a, c, u_c)
     eq = tuple(
         Equivalence(
             lab,

@@ -32,6 +32,8 @@ QUANTITIES = {
         1.0 / float(line_area_to_cm2(1)),
     ),
     "ratio": ("1", {"1": 1.0, "": 1.0}, None, None),
+    # any other measurand, from CSV files only: compared in the unit the rows state (one unit)
+    "other": (None, {}, None, None),
 }
 
 #: budget.json key of each quantity
@@ -51,11 +53,25 @@ class LabResult:
     u: float
     source: str
     dof: float = math.inf
+    unit: str = ""
 
 
-def unit_of(quantity: str) -> str:
-    """The unit every result of ``quantity`` is compared in."""
+def unit_of(quantity: str) -> str | None:
+    """The unit every result of ``quantity`` is compared in (None for 'other': the CSV's)."""
     return _spec(quantity)[0]
+
+
+def common_unit(results, quantity: str) -> str:
+    """The one unit of the compared results; refuses 'other' results in different units."""
+    if quantity != "other":
+        return unit_of(quantity)
+    units = sorted({r.unit for r in results})
+    if len(units) != 1:
+        raise ComparisonInputError(
+            f"results of quantity 'other' are compared in the unit they state, and these state "
+            f"{', '.join(repr(u) for u in units)}; convert them to one unit"
+        )
+    return units[0]
 
 
 def _spec(quantity: str):
@@ -93,6 +109,11 @@ def read_budget(path, lab: str, quantity: str) -> LabResult:
     except (OSError, json.JSONDecodeError) as exc:
         raise ComparisonInputError(f"{path}: cannot read a budget.json ({exc})") from None
     _spec(quantity)
+    if quantity not in BUDGET_KEYS:
+        raise ComparisonInputError(
+            f"{path}: a budget.json has no {quantity!r} quantity; use one of "
+            f"{', '.join(BUDGET_KEYS)}, or give results of other measurands as a CSV"
+        )
     key = BUDGET_KEYS[quantity]
     if summary.get("status", "ok") != "ok":
         raise ComparisonInputError(
@@ -113,11 +134,15 @@ def read_budget(path, lab: str, quantity: str) -> LabResult:
     value, u = _finite(entry["value"], entry["u"], f"{path}: field {key}")
     dof = entry.get("effective_dof", "inf")  # GUM nu_eff of that budget ("inf" when infinite)
     dof = math.inf if dof in ("inf", None) else float(dof)
-    return LabResult(lab, value * factor, u * factor, str(path), dof)
+    return LabResult(lab, value * factor, u * factor, str(path), dof, unit_of(quantity))
 
 
 def _factor(quantity: str, unit: str, where: str) -> float:
     unit_name, accepted, _, _ = _spec(quantity)
+    if quantity == "other":
+        if not unit:
+            raise ComparisonInputError(f"{where}: state the unit of the value and u")
+        return 1.0
     if unit not in accepted:
         raise ComparisonInputError(
             f"{where}: unit {unit!r} is not a unit of {quantity}; use one of "
@@ -192,7 +217,8 @@ def _csv_row(path, n: int, row: dict, quantity: str) -> LabResult:
     if not (u > 0 and dof > 0):
         raise ComparisonInputError(f"{where}: u (or U, k) and dof must be > 0")
     factor = _factor(quantity, row["unit"], f"{where}, column unit")
-    return LabResult(row["lab"], value * factor, u * factor, f"{path}:{n}", dof)
+    unit = row["unit"] if quantity == "other" else unit_of(quantity)
+    return LabResult(row["lab"], value * factor, u * factor, f"{path}:{n}", dof, unit)
 
 
 def _cell(row: dict, column: str, where: str) -> float:

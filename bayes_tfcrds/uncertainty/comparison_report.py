@@ -45,9 +45,15 @@ def comparison_json(comp: Comparison, results, seed: int | None = None) -> dict:
         }
     payload["notes"] = (
         "d = x - x_ref; u(d) from the covariance of the results (declared correlations) and "
-        "their share in x_ref; U = k u with k = 2; E_n = d/U; zeta = d/u; chi2 and Birge ratio "
-        "of the results about their weighted mean"
+        "their share in x_ref; U = k u with k = 2; E_n = d/U; zeta = d/u; chi2 (Cochran's Q) "
+        "and Birge ratio of the results about their weighted mean"
     )
+    if comp.reference.method.startswith("random effects"):
+        payload["notes"] += (
+            "; random-effects consensus: GLS mean under V + tau^2 I (tau = reference.tau, the "
+            "dark uncertainty), and u(d) with tau^2 added to every result's variance (u(d) is not "
+            "Knapp-Hartung-scaled; that scaling applies to u(x_ref) and its interval)"
+        )
     if seed is not None:
         payload["seed"] = seed
     return payload
@@ -61,7 +67,8 @@ def comparison_markdown(comp: Comparison, results) -> str:
     """Tables of the inputs, the reference value and consistency, and the degrees of equivalence."""
     unit, ref, cons = comp.unit, comp.reference, comp.consistency
     dof = {r.lab: r.dof for r in results}
-    lines = [f"# Comparison of {comp.quantity} ({unit})", "", "## Results", ""]
+    title = "Comparison" if comp.quantity == "other" else f"Comparison of {comp.quantity}"
+    lines = [f"# {title} ({unit})", "", "## Results", ""]
     lines += ["| lab | value | u | dof | source |", "|---|---|---|---|---|"]
     for r in results:
         d = "inf" if math.isinf(dof[r.lab]) else f"{dof[r.lab]:g}"
@@ -71,8 +78,18 @@ def comparison_markdown(comp: Comparison, results) -> str:
         "",
         "## Reference value",
         "",
-        f"x_ref = {ref.value:.6e} {unit}, u(x_ref) = {ref.u:.2e} {unit} ({ref.method}).",
+        f"x_ref = {ref.value:.6e} {unit}, u(x_ref) = {ref.u:.2e} {unit} ({ref.method}); "
+        f"95 % interval [{ref.interval[0]:.6e}, {ref.interval[1]:.6e}] {unit}"
+        + ("." if ref.dof is None else f" (Student's t, {ref.dof:g} dof)."),
         "",
+    ]
+    if ref.method.startswith("random effects"):
+        lines += [
+            f"Dark uncertainty tau = {ref.tau:.3e} {unit}: the scatter of the results beyond "
+            "their stated u; every u(d) below includes it.",
+            "",
+        ]
+    lines += [
         f"Consistency (about the weighted mean): chi2 = {cons.chi2:.3f}, dof = {cons.dof}, "
         f"p = {cons.p_value:.3g}, Birge ratio R_B = {cons.birge_ratio:.3f}; chi2 test at "
         f"{cons.alpha:.0%}: {verdict}.",

@@ -135,3 +135,45 @@ def test_bad_correlations_and_failed_budgets_are_refused(inputs, capsys):
     (inputs / "D1" / "budget.json").write_text(json.dumps(failed))
     assert run(inputs) == 1
     assert "budget failed its gates" in capsys.readouterr().err
+
+
+def test_compare_reproduces_the_iupac_guide_example_4f(tmp_path, capsys):
+    """CCQM-K145 Ni in bovine liver as a CSV of another measurand (mg/kg), REML + Knapp-Hartung.
+
+    Published (Possolo et al., IUPAC Technical Report 2024, Example 4F; digits as printed):
+    Q = 40.1205 on 16 dof, p = 0.0007, tau = 0.0463, consensus 2.0428, se 0.0159,
+    95 % interval [2.0091, 2.0765] mg/kg. See tests/uncertainty/test_random_effects.py.
+    """
+    rows = (
+        "JSI 1.930 0.110|INMC 1.940 0.064|GLHK 1.942 0.092|LNE 1.958 0.075|NIST 1.984 0.020|"
+        "KRISS 1.993 0.033|INACAL 2.010 0.060|NMIA 2.020 0.050|NIM 2.022 0.023|NMIJ 2.050 0.020|"
+        "RISE 2.055 0.052|NRC 2.070 0.050|PTB 2.077 0.035|LATU 2.080 0.059|LGC 2.131 0.042|"
+        "UME 2.150 0.030|HSA 2.180 0.080"
+    )
+    lines = ["lab,value,u,unit"] + [",".join(r.split()) + ",mg/kg" for r in rows.split("|")]
+    (tmp_path / "ni.csv").write_text("\n".join(lines) + "\n")
+    args = ["compare", str(tmp_path / "ni.csv"), "--quantity", "other", "--random-effects"]
+    out = tmp_path / "out"
+    assert main([*args, "REML", "--knapp-hartung", "-o", str(out), "--quiet"]) == 0
+    data = json.loads((out / "comparison.json").read_text())
+    ref, cons = data["reference"], data["consistency"]
+    assert data["unit"] == "mg/kg" and "reference_si" not in data
+    assert (round(cons["chi2"], 4), cons["dof"], round(cons["p_value"], 4)) == (40.1205, 16, 0.0007)
+    assert (round(ref["tau"], 4), round(ref["value"], 4), round(ref["u"], 4)) == (
+        0.0463,
+        2.0428,
+        0.0159,
+    )
+    assert [round(v, 4) for v in ref["interval"]] == [2.0091, 2.0765]
+    md = (out / "comparison.md").read_text()
+    assert "Dark uncertainty tau" in md and "Student's t, 16 dof" in md
+
+
+def test_compare_refuses_other_results_in_two_units_and_a_stray_knapp_hartung(tmp_path):
+    (tmp_path / "mixed.csv").write_text("lab,value,u,unit\nA,1.0,0.1,mg/kg\nB,1.1,0.1,g/kg\n")
+    base = ["compare", str(tmp_path / "mixed.csv"), "-o", str(tmp_path / "o"), "--quiet"]
+    assert main([*base, "--quantity", "other"]) != 0
+    (tmp_path / "one.csv").write_text("lab,value,u,unit\nA,1.0,0.1,mg/kg\nB,1.1,0.1,mg/kg\n")
+    one = ["compare", str(tmp_path / "one.csv"), "-o", str(tmp_path / "p"), "--quiet"]
+    assert main([*one, "--quantity", "other", "--knapp-hartung"]) != 0
+    assert main([*one, "--quantity", "other"]) == 0

@@ -1,8 +1,9 @@
 """Statistics of an interlaboratory comparison (bayes_tfcrds.uncertainty.comparison).
 
-No published comparison or standard's worked example was found whose input data and published
-statistics could be read and cited here, so there is no published-digits oracle yet. The
-statistics are checked against independent results instead: the closed forms for independent
+The published-digits oracle (CCQM-K145 nickel, from the IUPAC guide's Example 4F: Cochran's Q, p,
+the REML consensus with Knapp-Hartung interval) is in test_random_effects.py and, through the
+command line, in tests/cli/test_compare_cli.py. Here the statistics are checked against
+independent results: the closed forms for independent
 results (M. G. Cox, "The evaluation of key comparison data", Metrologia 39 (2002) 589-595,
 Procedure A: eqs. for x_ref, u(x_ref), chi2_obs and u^2(d_i) = u_i^2 - u_ref^2), the two-laboratory
 limit, the chi-squared distribution of chi2_obs, and a brute-force Monte Carlo of correlated
