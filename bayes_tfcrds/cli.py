@@ -428,7 +428,7 @@ def cmd_budget(args) -> int:
     )
 
     _check_executor(args)
-    if len(args.file) > 1 or args.executor != "local" or args.workers > 1:
+    if len(args.file) > 1 or args.executor != "local":
         return _budget_batch(args)
     bundle = _load(args.file[0])
     config = _config(bundle, args.config)
@@ -442,6 +442,7 @@ def cmd_budget(args) -> int:
                 np.random.default_rng(args.seed),
                 outdir=args.output,
                 progress=not args.quiet,
+                workers=args.workers,
             )
         except (LineFitError, AnalysisError, ValueError) as exc:
             return _fail(exc, 1)

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import logging
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -623,6 +624,55 @@ def _reference_area(inp: _Inputs, runs: dict):
     return ref_flat[:, ref_lsq.names.index("line_area")], max(float(ref_lsq.dof), 1.0)
 
 
+def reference_area_task(inp: _Inputs) -> tuple:
+    """Step 6 on its own (in a second process): (A_ref draws, dof, the CMDS sampling run or None).
+
+    The CMDS reference does not depend on H, so it can be sampled while the H and line posteriors
+    are; it draws from its own stream (``streams["cmds"]``), so the result is the same bit for bit
+    as in turn. Its progress bar is off: two processes' bars would overwrite each other.
+    """
+    runs = {}
+    a_ref, dof = _reference_area(replace(inp, progress=False), runs)
+    return a_ref, dof, runs.get("cmds")
+
+
+class _Now:
+    """A finished computation with a Future's ``result()`` (the in-turn path of :class:`_Side`)."""
+
+    def __init__(self, value):
+        self._value = value
+
+    def result(self):
+        return self._value
+
+
+class _Side:
+    """Deterministic steps submitted to a process pool, or run at once without one."""
+
+    def __init__(self, pool):
+        self.pool = pool
+
+    def submit(self, fn, *args):
+        return _Now(fn(*args)) if self.pool is None else self.pool.submit(fn, *args)
+
+
+def _start_reference(inp: _Inputs, pool) -> Future | None:
+    """Submit step 6 to ``pool`` when it samples (MCMC with CMDS); None: it runs in turn."""
+    if pool is None or inp.config.cmds is None or inp.options.posterior != "mcmc":
+        return None
+    return pool.submit(reference_area_task, inp)
+
+
+def _collect_reference(inp: _Inputs, job: Future | None, runs: dict):
+    """Step 6's (A_ref draws, dof): from the second process, or computed now."""
+    if job is None:
+        return _reference_area(inp, runs)
+    a_ref, dof, run = job.result()
+    if run is not None:
+        runs["cmds"] = run
+    return a_ref, dof
+
+
 def _h_components(
     split: _HSplit, grad_a, d_beat, refined, r_noise_ref: dict, noise_name: str, beat_dof=np.inf
 ):
@@ -1174,6 +1224,7 @@ def run_budget(
     rng: np.random.Generator | None = None,
     outdir: str | Path | None = None,
     progress: bool = False,
+    workers: int = 1,
 ) -> BudgetResult:
     """Posteriors, propagation and the GUM budget for one configuration (see module doc).
 
@@ -1197,6 +1248,9 @@ def run_budget(
         Folder for the chains (a rerun resumes them); None keeps everything in memory.
     progress : bool
         Show the samplers' progress.
+    workers : int
+        Processes to use: with 2 or more, the CMDS reference is sampled in a second process
+        while H and the line are (the same result bit for bit; MCMC only).
 
     Returns
     -------
@@ -1206,18 +1260,32 @@ def run_budget(
     """
     rng = np.random.default_rng(0) if rng is None else rng
     log.debug(f"budget of {config.name}: {options}")
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     inp = _inputs(bundle, config, options, rng, outdir, progress)
     if outdir is None:
-        return _budget(inp)
+        return _budget_with(inp, workers)
     # one run at a time resumes the chains of a folder (a second one is refused, FolderBusyError)
     with folder_lock(outdir):
         claim_chains(outdir, run_fingerprint(bundle, config, options))
+        return _budget_with(inp, workers)
+
+
+def _budget_with(inp: _Inputs, workers: int) -> BudgetResult:
+    """:func:`_budget`, with a one-process pool for the CMDS reference when workers >= 2."""
+    if workers < 2:
         return _budget(inp)
+    with ProcessPoolExecutor(max_workers=1) as pool:
+        return _budget(inp, pool)
 
 
-def _budget(inp: _Inputs) -> BudgetResult:
-    """Steps 1-10 of :func:`run_budget` on checked inputs (the chain folder claimed)."""
+def _budget(inp: _Inputs, pool=None) -> BudgetResult:
+    """Steps 1-10 of :func:`run_budget` on checked inputs (the chain folder claimed).
+
+    With a ``pool`` (a process pool), the CMDS reference (step 6) is sampled there meanwhile.
+    """
     options, config = inp.options, inp.config
+    ref_job = _start_reference(inp, pool)
     tf = options.method == "tf-crds"
     clock = StageClock(9 if tf else 6, f"budget {config.name} ({options.posterior})")
     runs = {}
@@ -1234,6 +1302,12 @@ def _budget(inp: _Inputs) -> BudgetResult:
         clock.done("H posterior")
     dt = _decay_times(inp, h_star)  # 2. decay times
     clock.done("decay times")
+    # deterministic steps that need only H* and the decay times: beside the line posterior
+    side = _Side(pool)
+    instrument_job = side.submit(
+        instrument_rows, config, options, h_star, dt.spec, inp.gd, inp.nu_ref
+    )  # 6c.
+    tau_job = side.submit(_tau_table, inp, dt, h_star, h_draws, names)  # 11.
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     clock.done("line posterior")
     a_noise = line_flat[:, dt.lsq.names.index("line_area")]
@@ -1259,14 +1333,14 @@ def _budget(inp: _Inputs) -> BudgetResult:
         clock.done("H into A")
     else:
         a_total = a_noise.copy()
-    a_ref, dof_ref = _reference_area(inp, runs)  # 6. A_ref
+    a_ref, dof_ref = _collect_reference(inp, ref_job, runs)  # 6. A_ref
     clock.done("A_ref from CMDS")
     form = None
     if tf:  # 6b. the form of the H model
         form_row, form = _h_model_form(inp, dt, forms, beat_2, refined, "n_r" in names)
         h_rows = (h_rows[0] + [form_row], h_rows[1])
         clock.done("H model form")
-    instrument = instrument_rows(config, options, h_star, dt.spec, inp.gd, inp.nu_ref)  # 6c.
+    instrument = instrument_job.result()  # 6c.
     clock.done("instrument rows")
     budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument)  # 7-9. budgets
     nu_a = budget_a.effective_dof
@@ -1298,7 +1372,7 @@ def _budget(inp: _Inputs) -> BudgetResult:
         "h_names": names,  # the columns of h_draws
         "a_shift_h": d_h,  # first-order shift of A (Hz/m) that each H draw causes
     }
-    tau_table = _tau_table(inp, dt, h_star, h_draws, names)
+    tau_table = tau_job.result()
     clock.done("decay-time table")
     return BudgetResult(
         summary=summary,

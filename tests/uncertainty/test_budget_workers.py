@@ -1,0 +1,47 @@
+"""``run_budget(workers=2)`` samples the CMDS reference in a second process: same result, bit for bit.
+
+The reference draws from its own random stream, so running it beside the H and line posteriors
+(issue 16, item 2: a budget fast enough on 2 cores) must change nothing but the wall time.
+"""
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
+from bayes_tfcrds.uncertainty.outputs import write_outputs
+
+TINY = replace(Campaign(), n_points=21, n_samples=4096, n_avg=25)
+# short chains: the gates fail, which does not matter for an identity of two runs
+SHORT = BudgetOptions(t_cuts_s=(4e-6, 8e-6), n_steps=60, max_steps=60, n_h_draws=100)
+
+
+@pytest.fixture(scope="module")
+def bundle():
+    b, _ = simulate_campaign(["letter-D2"], np.random.default_rng(5), TINY)
+    return b
+
+
+def _budget_json(bundle, workers, out):
+    res = run_budget(bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), workers=workers)
+    write_outputs(res, out, seed=1)
+    data = json.loads((out / "budget.json").read_text())
+    data.pop("provenance", None)
+    return res, data
+
+
+def test_two_workers_give_the_same_budget_bit_for_bit(bundle, tmp_path):
+    one, d1 = _budget_json(bundle, 1, tmp_path / "one")
+    two, d2 = _budget_json(bundle, 2, tmp_path / "two")
+    assert d1 == d2
+    assert np.array_equal(one.samples["a_ref"], two.samples["a_ref"])
+    assert np.array_equal(one.runs["cmds"].samples, two.runs["cmds"].samples)
+    assert set(two.runs) == {"h", "line", "cmds"}
+
+
+def test_workers_below_one_are_refused(bundle):
+    with pytest.raises(ValueError, match="workers"):
+        run_budget(bundle, bundle.configs["D2"], SHORT, workers=0)
