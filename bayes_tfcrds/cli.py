@@ -515,7 +515,9 @@ def cmd_compare(args) -> int:
             if args.reference is not None:
                 raise Refused("give either --reference or --random-effects, not both", 2)
             ref = Reference(
-                "random-effects", estimator=args.random_effects, knapp_hartung=args.knapp_hartung
+                "random-effects",
+                estimator=args.random_effects,
+                knapp_hartung=args.knapp_hartung or "",
             )
         elif args.knapp_hartung:
             raise Refused("--knapp-hartung adjusts a --random-effects consensus; add one", 2)
@@ -1116,8 +1118,11 @@ def _add_compare(sub) -> None:
     )
     sp.add_argument(
         "--knapp-hartung",
-        action="store_true",
-        help="with --random-effects: Knapp-Hartung u and a Student-t 95 %% interval",
+        nargs="?",
+        const="standard",
+        choices=["standard", "modified"],
+        help="with --random-effects: Knapp-Hartung u and a Student-t 95 %% interval; 'modified' "
+        "never lets the adjustment shrink u below the plain random-effects u",
     )
     sp.add_argument("--correlations", metavar="FILE", help="CSV lab_a,lab_b,r of shared inputs")
     sp.add_argument("-o", "--output", required=True, help="output folder")

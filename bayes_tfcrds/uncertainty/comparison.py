@@ -50,7 +50,8 @@ class Reference:
     kind: 'weighted-mean' (GLS mean of all results), 'laboratory' (the result of ``lab``),
     'value' (a stated ``value`` with standard uncertainty ``u``, independent of the results),
     or 'random-effects' (the consensus with dark uncertainty tau by ``estimator``, 'DL', 'REML'
-    or 'ML'; ``knapp_hartung`` scales its u and takes the interval from t with n - 1 dof).
+    or 'ML'; ``knapp_hartung`` 'standard' scales its u by sqrt(q) and takes the interval from t
+    with n - 1 dof, 'modified' by sqrt(max(q, 1)), which never gives a u below the plain one).
     value and u in the unit of the comparison.
     """
 
@@ -59,7 +60,7 @@ class Reference:
     value: float | None = None
     u: float | None = None
     estimator: str = "REML"
-    knapp_hartung: bool = False
+    knapp_hartung: str = ""  # "", "standard" or "modified"
 
 
 @dataclass(frozen=True)
@@ -68,7 +69,8 @@ class ReferenceValue:
 
     tau is the dark uncertainty of a random-effects consensus (0 otherwise), interval the 95 %
     coverage interval (normal quantile, or Student's t with ``dof`` for Knapp-Hartung; dof None
-    means infinite), all in the unit of the comparison.
+    means infinite), all in the unit of the comparison. ``kh_q`` is the Knapp-Hartung q (None
+    without the adjustment): q < 1 shrinks u below the plain random-effects u in the standard form.
     """
 
     method: str
@@ -78,6 +80,7 @@ class ReferenceValue:
     tau: float = 0.0
     interval: tuple = ()
     dof: float | None = None
+    kh_q: float | None = None
 
 
 @dataclass(frozen=True)
@@ -229,27 +232,35 @@ def reference_value(x, cov, a, c: float, u_c: float, method: str) -> ReferenceVa
     return ReferenceValue(method, value, u, tuple(a), interval=coverage_interval(value, u, None))
 
 
-def random_effects_reference(x, cov, estimator: str, knapp_hartung: bool):
+KNAPP_HARTUNG = ("", "standard", "modified")
+
+
+def random_effects_reference(x, cov, estimator: str, knapp_hartung: str = ""):
     """The random-effects consensus and Sigma = V + tau^2 I, the covariance its DoE use.
 
-    x_ref is the GLS mean under Sigma; u^2 = 1 / (1^T Sigma^-1 1), times q (Knapp-Hartung) when
-    asked, with the interval from t_{n-1}.
+    x_ref is the GLS mean under Sigma; u^2 = 1 / (1^T Sigma^-1 1), times q ('standard'
+    Knapp-Hartung, as metafor's ``test="knha"``) or max(q, 1) ('modified') when asked, with the
+    interval from t_{n-1}.
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"unknown estimator {estimator!r}; use one of {', '.join(ESTIMATORS)}")
+    if knapp_hartung not in KNAPP_HARTUNG:
+        raise ValueError(f"knapp_hartung must be one of {KNAPP_HARTUNG}, got {knapp_hartung!r}")
     x = np.asarray(x, dtype=float)
     tau = dark_uncertainty(x, cov, estimator)
     sigma = cov + tau**2 * np.eye(x.size)
     a = gls_weights(sigma)
     value = float(a @ x)
     u = float(np.sqrt(a @ sigma @ a))
-    dof = None
+    dof = q = None
     method = f"random effects ({estimator})"
     if knapp_hartung:
-        u *= knapp_hartung_factor(x, sigma)
+        q = knapp_hartung_factor(x, sigma) ** 2
+        u *= float(np.sqrt(max(q, 1.0) if knapp_hartung == "modified" else q))
         dof = float(x.size - 1)
-        method = f"random effects ({estimator}, Knapp-Hartung)"
-    ref = ReferenceValue(method, value, u, tuple(a), tau, coverage_interval(value, u, dof), dof)
+        kind = "modified Knapp-Hartung" if knapp_hartung == "modified" else "Knapp-Hartung"
+        method = f"random effects ({estimator}, {kind})"
+    ref = ReferenceValue(method, value, u, tuple(a), tau, coverage_interval(value, u, dof), dof, q)
     return ref, sigma
 
 
@@ -309,7 +320,8 @@ def compare(
         Weighted mean (default), one laboratory, a stated value with u, or the random-effects
         consensus. For the last, the degrees of equivalence use Sigma = V + tau^2 I: a result's
         d is judged against its own u and the dark uncertainty that the consensus model gives
-        every laboratory (as the NIST Consensus Builder does); pairs use V alone.
+        every laboratory (tau taken as known; its own uncertainty is not propagated); pairs use
+        V alone.
     """
     labs = tuple(str(lab) for lab in labs)
     x = np.asarray(x, dtype=float)

@@ -89,6 +89,12 @@ def comparison_markdown(comp: Comparison, results) -> str:
             "their stated u; every u(d) below includes it.",
             "",
         ]
+    if ref.kh_q is not None and ref.kh_q < 1 and "modified" not in ref.method:
+        lines += [
+            f"Note: the Knapp-Hartung q = {ref.kh_q:.3g} < 1 makes u(x_ref) smaller than the "
+            "plain random-effects u; `--knapp-hartung modified` uses max(q, 1).",
+            "",
+        ]
     lines += [
         f"Consistency (about the weighted mean): chi2 = {cons.chi2:.3f}, dof = {cons.dof}, "
         f"p = {cons.p_value:.3g}, Birge ratio R_B = {cons.birge_ratio:.3f}; chi2 test at "

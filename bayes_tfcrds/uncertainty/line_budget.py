@@ -30,8 +30,11 @@ failed, and its numbers are never given as a result.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
+import os
+import signal
 from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -1272,11 +1275,23 @@ def run_budget(
 
 
 def _budget_with(inp: _Inputs, workers: int) -> BudgetResult:
-    """:func:`_budget`, with a one-process pool for the CMDS reference when workers >= 2."""
+    """:func:`_budget`, with a pool of workers - 1 processes for the side steps when workers >= 2.
+
+    If the main process fails or is interrupted, the pool's processes get SIGINT: a sampler there
+    commits its chains and stops at its next chunk, instead of the error waiting for it to finish.
+    """
     if workers < 2:
         return _budget(inp)
-    with ProcessPoolExecutor(max_workers=1) as pool:
+    pool = ProcessPoolExecutor(max_workers=workers - 1)
+    try:
         return _budget(inp, pool)
+    except BaseException:
+        for proc in list(getattr(pool, "_processes", {}).values()):
+            with contextlib.suppress(OSError):
+                os.kill(proc.pid, signal.SIGINT)
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _budget(inp: _Inputs, pool=None) -> BudgetResult:

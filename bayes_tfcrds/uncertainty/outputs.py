@@ -129,8 +129,19 @@ def estimate_text(values) -> str:
     return f"{med:.{decimals}f} ± {u:.{decimals}f}"
 
 
-#: draws shown in a corner plot's panels (every n-th draw, for drawing speed)
+#: draws shown in a corner plot's panels (every walker at every n-th step, for drawing speed)
 CORNER_POINTS = 20_000
+
+
+def thin_steps(flat, shape, most: int):
+    """The rows of ``flat`` at every n-th step, with all walkers and ensembles kept.
+
+    ``flat`` is in ensemble, step, walker order and ``shape`` gives those three sizes; n is the
+    smallest stride that leaves at most ``most`` rows.
+    """
+    n_ens, n_steps, n_walk = shape
+    stride = max(1, -(-n_ens * n_steps * n_walk // most))
+    return flat.reshape(n_ens, n_steps, n_walk, -1)[:, ::stride].reshape(-1, flat.shape[-1])
 
 
 def corner_figure(run_key: str, run, truth=None, config=None):
@@ -147,10 +158,10 @@ def corner_figure(run_key: str, run, truth=None, config=None):
     k = data.shape[1]
     # corner lays the panels out itself: no constrained layout on its figure
     fig = plt.figure(figsize=(max(1.8 * k, 4.0),) * 2, layout="none")
-    # the panels show at most CORNER_POINTS draws, every n-th in sampler order (deterministic):
-    # contours and histograms are as smooth, and drawing 10^5 markers per panel took seconds;
-    # the titles' estimates and the quantile lines use every draw
-    shown = data[:: max(1, -(-data.shape[0] // CORNER_POINTS))]
+    # the panels show at most CORNER_POINTS draws: every walker at every n-th step (whole steps,
+    # so no walker is left out; deterministic). Contours and histograms are as smooth, and
+    # drawing 10^5 markers per panel took seconds; the titles and quantile lines use every draw
+    shown = thin_steps(data, run.samples.shape[:3], CORNER_POINTS)
     corner.corner(
         shown,
         fig=fig,

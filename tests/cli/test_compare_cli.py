@@ -176,4 +176,5 @@ def test_compare_refuses_other_results_in_two_units_and_a_stray_knapp_hartung(tm
     (tmp_path / "one.csv").write_text("lab,value,u,unit\nA,1.0,0.1,mg/kg\nB,1.1,0.1,mg/kg\n")
     one = ["compare", str(tmp_path / "one.csv"), "-o", str(tmp_path / "p"), "--quiet"]
     assert main([*one, "--quantity", "other", "--knapp-hartung"]) != 0
+    assert main([*one, "--quantity", "other", "--reference", "A", "--random-effects", "DL"]) != 0
     assert main([*one, "--quantity", "other"]) == 0

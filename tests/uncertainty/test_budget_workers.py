@@ -1,4 +1,4 @@
-"""``run_budget(workers=2)`` samples the CMDS reference in a second process: same result, bit for bit.
+"""``run_budget(workers=2)`` samples the CMDS reference in a second process: the same result.
 
 The reference draws from its own random stream, so running it beside the H and line posteriors
 (issue 16, item 2: a budget fast enough on 2 cores) must change nothing but the wall time.
@@ -26,7 +26,10 @@ def bundle():
 
 
 def _budget_json(bundle, workers, out):
-    res = run_budget(bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), workers=workers)
+    # with an output folder: the chains go to chains_*.h5 (the CMDS one written by the child)
+    res = run_budget(
+        bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), outdir=out, workers=workers
+    )
     write_outputs(res, out, seed=1)
     data = json.loads((out / "budget.json").read_text())
     data.pop("provenance", None)
@@ -40,6 +43,20 @@ def test_two_workers_give_the_same_budget_bit_for_bit(bundle, tmp_path):
     assert np.array_equal(one.samples["a_ref"], two.samples["a_ref"])
     assert np.array_equal(one.runs["cmds"].samples, two.runs["cmds"].samples)
     assert set(two.runs) == {"h", "line", "cmds"}
+    assert one.tau_table == two.tau_table
+    assert (tmp_path / "two" / "chains_cmds.h5").stat().st_size > 0
+
+
+def test_the_corner_plot_thins_whole_steps():
+    from bayes_tfcrds.uncertainty.outputs import thin_steps
+
+    shape = (4, 500, 16)  # ensembles, steps, walkers
+    flat = np.arange(np.prod(shape) * 2, dtype=float).reshape(-1, 2)
+    shown = thin_steps(flat, shape, 20_000)
+    assert shown.shape[0] <= 20_000
+    # every walker of every ensemble is still there (row index mod 16 is the walker)
+    walkers = (shown[:, 0] // 2).astype(int) % 16
+    assert set(walkers) == set(range(16))
 
 
 def test_workers_below_one_are_refused(bundle):

@@ -90,7 +90,7 @@ def test_nickel_ccqm_k145_reml_knapp_hartung_to_the_published_digits():
         NI_LABS,
         NI_W,
         NI_U,
-        reference=Reference("random-effects", estimator="REML", knapp_hartung=True),
+        reference=Reference("random-effects", estimator="REML", knapp_hartung="standard"),
     )
     ref = comp.reference
     assert round(comp.consistency.chi2, 4) == 40.1205
@@ -101,6 +101,17 @@ def test_nickel_ccqm_k145_reml_knapp_hartung_to_the_published_digits():
     assert round(ref.u, 4) == 0.0159
     assert tuple(round(v, 4) for v in ref.interval) == (2.0091, 2.0765)
     assert ref.dof == 16
+    # q = 0.9895 < 1 here: the standard form (metafor's) shrinks u a little, the modified does not
+    assert ref.kh_q < 1
+    modified = compare(
+        NI_LABS,
+        NI_W,
+        NI_U,
+        reference=Reference("random-effects", estimator="REML", knapp_hartung="modified"),
+    ).reference
+    plain = compare(NI_LABS, NI_W, NI_U, reference=Reference("random-effects")).reference
+    assert modified.u == plain.u > ref.u
+    assert modified.u == pytest.approx(ref.u / np.sqrt(ref.kh_q), rel=1e-12)
 
 
 def test_nickel_ccqm_k145_maximum_likelihood_to_the_published_digits():
@@ -147,11 +158,13 @@ def test_reml_with_correlated_results_equals_the_error_contrast_form(seed):
     r = c / np.sqrt(np.outer(c.diagonal(), c.diagonal()))  # a random valid correlation matrix
     cov = covariance_matrix(u, r)
     x = rng.multivariate_normal(np.zeros(n), cov + 1.5**2 * np.eye(n))
-    ours = tau_likelihood(x, cov, restricted=True)
+    # through compare(): the REML estimator is the one dispatched, correlations included
+    ref = compare("ABCDEF", x, u, r, Reference("random-effects", estimator="REML")).reference
     # 1e-6 relative: two optimisers of the same smooth 1-D function, both to ~1e-12 in tau;
     # abs 1e-6 (u ~ 1): at a boundary optimum (tau = 0, seed 1) the bounded search stops a few
     # of its tolerances inside the interval
-    assert ours == pytest.approx(error_contrast_reml(x, cov), rel=1e-6, abs=1e-6)
+    assert ref.tau == pytest.approx(error_contrast_reml(x, cov), rel=1e-6, abs=1e-6)
+    assert ref.tau == tau_likelihood(x, cov, restricted=True)
 
 
 def test_the_dersimonian_laird_moment_holds_for_correlated_results():
@@ -183,10 +196,12 @@ def test_consistent_results_have_no_dark_uncertainty_and_the_consensus_is_the_we
     for est in ("DL", "REML", "ML"):
         comp = compare("ABCD", x, u, reference=Reference("random-effects", estimator=est))
         fixed = compare("ABCD", x, u)
-        assert comp.reference.tau == pytest.approx(0.0, abs=1e-9)
+        # exactly 0: DL truncates at 0, and a likelihood optimum on the boundary is returned as 0
+        assert comp.reference.tau == 0.0
+        # the same GLS mean and u(d), up to rounding in another order of the same arithmetic
         assert comp.reference.value == pytest.approx(fixed.reference.value, rel=1e-12)
         assert [e.u for e in comp.equivalence] == pytest.approx(
-            [e.u for e in fixed.equivalence], rel=1e-6
+            [e.u for e in fixed.equivalence], rel=1e-12
         )
 
 
@@ -202,6 +217,10 @@ def test_dark_uncertainty_widens_every_degree_of_equivalence():
     assert all(r.u > f.u for r, f in zip(comp.equivalence, fixed.equivalence))
 
 
-def test_an_unknown_estimator_is_refused():
+def test_an_unknown_estimator_or_adjustment_is_refused():
     with pytest.raises(ValueError, match="estimator"):
         compare("AB", [1.0, 2.0], [0.1, 0.1], reference=Reference("random-effects", estimator="X"))
+    with pytest.raises(ValueError, match="knapp_hartung"):
+        compare(
+            "AB", [1.0, 2.0], [0.1, 0.1], reference=Reference("random-effects", knapp_hartung="x")
+        )
