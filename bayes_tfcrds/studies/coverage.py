@@ -42,6 +42,8 @@ from bayes_tfcrds.simulate.campaign import (
     line_truth,
     simulate_campaign,
 )
+from bayes_tfcrds.simulate.noise import NoiseColour
+from bayes_tfcrds.simulate.zoo import ZOO_REGIMES, draw_chain
 from bayes_tfcrds.studies.common import stored_record
 
 LEVELS = (0.68, 0.95)
@@ -58,7 +60,16 @@ LABELS = {
 }
 #: the full-budget quantities (u_c with the Type B rows)
 UC_QUANTITIES = ("A (u_c)", "A/A_ref (u_c)", "S (u_c)")
-RECORD_VERSION = 2  # 2: drawn T, gauge reading errors, S (u_c)
+RECORD_VERSION = 3  # 2: drawn T, gauge reading errors, S (u_c); 3: chain and noise strata
+#: the chain regime of a letter preset (the issue's strata: D1/D2-like, D3/D4-like, chain zoo)
+PRESET_REGIME = {
+    "letter-D1": "D1/D2-like",
+    "letter-D2": "D1/D2-like",
+    "letter-D3": "D3/D4-like",
+    "letter-D4": "D3/D4-like",
+}
+#: coloured detector noise of a 'coloured' stratum: one of these shapes, drawn per campaign
+COLOURED_KINDS = ("lowpass", "chain", "pink")
 
 
 @dataclass(frozen=True)
@@ -126,6 +137,30 @@ class CampaignDraw:
     temperature_k: float = 296.0
     pressure_error_pa: float = 0.0  # the gauges' realised reading errors (Type B inputs)
     temperature_error_k: float = 0.0
+    chain: str = "preset"  # "preset" (drawn about the base preset's chain) or "zoo-<regime>"
+    noise: NoiseColour = NoiseColour()  # PSD shape of the detector noise
+
+    @property
+    def stratum(self) -> dict:
+        """The campaign's stratum: chain regime and noise kind."""
+        regime = "zoo" if self.chain.startswith("zoo") else PRESET_REGIME.get(self.preset, "preset")
+        return {"chain": regime, "noise": "white" if self.noise.is_white else "coloured"}
+
+
+def random_colour(rng: np.random.Generator) -> NoiseColour:
+    """A coloured detector-noise shape, one of three kinds with probability 1/3 each.
+
+    Low-pass (corner logU(1, 15) MHz, order 1, 2 or 3), through the detection chain, or
+    1/f^alpha on a white floor (knee logU(5, 300) kHz, alpha U(0.7, 1.5)).
+    """
+    kind = COLOURED_KINDS[int(rng.integers(len(COLOURED_KINDS)))]
+    if kind == "lowpass":
+        f = float(np.exp(rng.uniform(np.log(1e6), np.log(15e6))))
+        return NoiseColour("lowpass", f_hz=f, order=float(rng.choice([1.0, 2.0, 3.0])))
+    if kind == "pink":
+        knee = float(np.exp(rng.uniform(np.log(5e3), np.log(3e5))))
+        return NoiseColour("pink", f_knee_hz=knee, alpha=float(rng.uniform(0.7, 1.5)))
+    return NoiseColour("chain")
 
 
 def draw_truth(
@@ -133,10 +168,16 @@ def draw_truth(
     presets,
     dist: TruthDistribution = TruthDistribution(),
     campaign: Campaign = Campaign(),
+    chain_kind: str = "preset",
+    noise_kind: str = "white",
 ) -> CampaignDraw:
     """Draw one campaign's truth from ``dist`` (see :class:`TruthDistribution`).
 
-    The reading errors use the campaign's stated u(p) and u(T).
+    The reading errors use the campaign's stated u(p) and u(T). ``chain_kind`` 'zoo' replaces
+    the chain drawn about the preset by a chain-zoo chain (regime tail or pole, equally likely;
+    :mod:`bayes_tfcrds.simulate.zoo`); ``noise_kind`` 'coloured' draws a noise shape
+    (:func:`random_colour`). Those draws come after the others, so the white, preset-chain
+    campaigns are drawn as before.
     """
     line = load_line()
     preset = str(presets[int(rng.integers(len(presets)))])
@@ -153,7 +194,7 @@ def draw_truth(
         f_r_hz=uni(dist.f_r_hz),
         gamma_r=uni(dist.gamma_r),
     )
-    return CampaignDraw(
+    draw = CampaignDraw(
         preset=preset,
         intensity_cm_per_molecule=s,
         pressure_pa=p,
@@ -166,6 +207,16 @@ def draw_truth(
         pressure_error_pa=float(campaign.pressure_u_pa * rng.standard_normal()),
         temperature_error_k=float(campaign.temperature_u_k * np.sqrt(3.0) * rng.uniform(-1, 1)),
     )
+    if chain_kind == "zoo":
+        regime = ZOO_REGIMES[int(rng.integers(len(ZOO_REGIMES)))]
+        draw = replace(draw, tf=draw_chain(rng, regime), chain=f"zoo-{regime}")
+    elif chain_kind != "preset":
+        raise ValueError(f"chain kind {chain_kind!r}: 'preset' or 'zoo'")
+    if noise_kind == "coloured":
+        draw = replace(draw, noise=random_colour(rng))
+    elif noise_kind != "white":
+        raise ValueError(f"noise kind {noise_kind!r}: 'white' or 'coloured'")
+    return draw
 
 
 def preset_draw(preset: str, campaign: Campaign = Campaign()) -> CampaignDraw:
@@ -217,6 +268,7 @@ def simulate_draw(draw: CampaignDraw, rng: np.random.Generator, campaign: Campai
         temperature_k=draw.temperature_k,
         pressure_error_pa=draw.pressure_error_pa,
         temperature_error_k=draw.temperature_error_k,
+        noise=draw.noise,
     )
     return simulate_campaign(
         [draw.preset],
@@ -335,6 +387,21 @@ class CoverageSettings:
     options: object  # BudgetOptions
     presets: tuple
     dist: TruthDistribution = TruthDistribution()
+    chains: tuple = ("preset",)  # the strata: chain kinds x noise kinds, in turn by index
+    noises: tuple = ("white",)
+
+    @property
+    def strata(self) -> list:
+        """(chain kind, noise kind) of each stratum; campaign i is in stratum i mod len."""
+        return [(c, n) for c in self.chains for n in self.noises]
+
+    def draw(self, index: int):
+        """Campaign ``index``: its truth and the generators of its simulation and analysis."""
+        ss = np.random.SeedSequence(self.seed, spawn_key=(index,))
+        g_draw, g_sim, g_fit = (np.random.default_rng(c) for c in ss.spawn(3))
+        chain, noise = self.strata[index % len(self.strata)]
+        draw = draw_truth(g_draw, self.presets, self.dist, self.campaign, chain, noise)
+        return draw, g_sim, g_fit
 
     def fingerprint(self) -> str:
         text = json.dumps(
@@ -345,6 +412,8 @@ class CoverageSettings:
                 asdict(self.options),
                 list(self.presets),
                 asdict(self.dist),
+                list(self.chains),
+                list(self.noises),
             ],
             sort_keys=True,
             default=str,
@@ -354,17 +423,17 @@ class CoverageSettings:
 
 def run_campaign(settings: CoverageSettings, index: int) -> dict:
     """Draw, simulate and analyse campaign ``index``; its numbers depend on (settings, index)."""
-    ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
-    g_draw, g_sim, g_fit = (np.random.default_rng(c) for c in ss.spawn(3))
-    draw = draw_truth(g_draw, settings.presets, settings.dist, settings.campaign)
+    draw, g_sim, g_fit = settings.draw(index)
     bundle, truth = simulate_draw(draw, g_sim, settings.campaign)
     rec = {
         "index": index,
         "fingerprint": settings.fingerprint(),
         "posterior": settings.options.posterior,
+        "stratum": draw.stratum,
         "draw": {
-            **{k: v for k, v in asdict(draw).items() if k != "tf"},
+            **{k: v for k, v in asdict(draw).items() if k not in ("tf", "noise")},
             **{f"tf_{k}": v for k, v in asdict(draw.tf).items()},
+            "noise": draw.noise.describe(),
         },
         "line_area_true_hz_per_m": truth["line"]["line_area_hz_per_m"],
         "code": git_commit(),
@@ -464,6 +533,78 @@ def summarise(records, quantity: str, u_scale: float = 1.0, bins: int = 10) -> d
     return out
 
 
+#: the quantities each stratum is summarised for (the posterior's, and S with its full u_c)
+STRATUM_QUANTITIES = (*QUANTITIES, "S (u_c)")
+
+
+def stratum_label(stratum: dict) -> str:
+    return f"{stratum['chain']}, {stratum['noise']} noise"
+
+
+def in_band(coverage: float, p: float, n: int, k: float = 2.0) -> bool:
+    """Coverage within ``k`` binomial standard deviations sqrt(p(1-p)/n) of nominal ``p``."""
+    return bool(n > 0 and abs(coverage - p) <= k * binomial_se(p, n))
+
+
+def strata_table(records) -> list:
+    """Coverage per stratum (chain regime x noise kind) and quantity, with its 2-sigma band.
+
+    A stratum's quantity is in band when both its 68 % and 95 % coverage lie within two binomial
+    standard deviations of nominal for that stratum's number of campaigns.
+    """
+    ok = [r for r in records if r.get("status") == "ok" and "stratum" in r]
+    labels = sorted({stratum_label(r["stratum"]) for r in records if "stratum" in r})
+    rows = []
+    for label in labels:
+        mine = [r for r in ok if stratum_label(r["stratum"]) == label]
+        n_all = sum(1 for r in records if "stratum" in r and stratum_label(r["stratum"]) == label)
+        qs = {}
+        for q in STRATUM_QUANTITIES:
+            pulls = np.array([r["quantities"][q]["pull"] for r in mine if q in r["quantities"]])
+            n = pulls.size
+            entry = {"n": n, "sd_pull": float(np.std(pulls, ddof=1)) if n > 1 else None}
+            for p in LEVELS:
+                key = int(100 * p)
+                c = float(np.mean(np.abs(pulls) < Z[p])) if n else float("nan")
+                entry[f"coverage_{key}"] = c
+                entry[f"band_{key}"] = [p - 2 * binomial_se(p, n), p + 2 * binomial_se(p, n)]
+                entry[f"in_band_{key}"] = in_band(c, p, n)
+            qs[q] = entry
+        rows.append({"stratum": label, "campaigns": n_all, "analysed": len(mine), "quantities": qs})
+    return rows
+
+
+def _strata_report(rows: list, post: str, rep) -> None:
+    """The strata table: per stratum and quantity, 68/95 % coverage and whether in band."""
+    if len(rows) < 2:
+        return
+    rep.add_heading("Coverage by stratum")
+    table = []
+    for row in rows:
+        for q, e in row["quantities"].items():
+            mark = "in band" if e["in_band_68"] and e["in_band_95"] else "**out of band**"
+            table.append(
+                [
+                    row["stratum"],
+                    LABELS[q],
+                    e["n"],
+                    f"{100 * e['coverage_68']:.1f}",
+                    f"{100 * e['coverage_95']:.1f}",
+                    "-" if e["sd_pull"] is None else f"{e['sd_pull']:.2f}",
+                    mark,
+                ]
+            )
+    rep.add_table(
+        ["stratum", "quantity", "campaigns", "68 % (%)", "95 % (%)", "sd of pulls", "verdict"],
+        table,
+        caption=f"{post} posterior. Campaign i is in stratum i mod (number of strata). In band: "
+        "both coverages within two binomial standard deviations sqrt(p(1-p)/n) of nominal for the "
+        "stratum's n. Chain regimes: D1/D2-like and D3/D4-like are chains drawn about those "
+        "presets; zoo chains are drawn from both regimes of Eq. 2 (simulate/zoo.py). Coloured "
+        "noise is low-pass, through the detection chain, or 1/f, drawn per campaign.",
+    )
+
+
 def beat_note_mode(settings: CoverageSettings, index: int) -> dict:
     """Re-simulate campaign ``index`` and refit its beat note.
 
@@ -476,9 +617,7 @@ def beat_note_mode(settings: CoverageSettings, index: int) -> dict:
     from bayes_tfcrds.fit.beat_note import fit_beat_note
     from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit
 
-    ss = np.random.SeedSequence(settings.seed, spawn_key=(index,))
-    g_draw, g_sim, _ = (np.random.default_rng(c) for c in ss.spawn(3))
-    draw = draw_truth(g_draw, settings.presets, settings.dist, settings.campaign)
+    draw, g_sim, _ = settings.draw(index)
     bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
     cfg = next(iter(bundle.configs.values()))
     fit = beat_note_fit(cfg, free=BEAT_FREE)
@@ -534,7 +673,12 @@ def settings_of(study) -> CoverageSettings:
         max_steps=max(8 * study.mcmc_steps, 24000),
     )
     return CoverageSettings(
-        seed=study.seed, campaign=camp, options=opts, presets=tuple(study.presets)
+        seed=study.seed,
+        campaign=camp,
+        options=opts,
+        presets=tuple(study.presets),
+        chains=tuple(study.chain_kinds),
+        noises=tuple(study.noise_kinds),
     )
 
 
@@ -620,6 +764,17 @@ def _describe(study, settings, rep) -> None:
             "campaign on this machine (four ensembles per posterior, extended until the gates "
             "pass), which would put 200 campaigns far beyond the study's 20-minute budget on 2 "
             "cores; the MCMC cross-check below runs a subset of the same campaigns."
+        )
+    if len(settings.strata) > 1:
+        rep.add_text(
+            "Strata: campaign i takes the i-th (mod "
+            f"{len(settings.strata)}) of the chain kinds x noise kinds "
+            + ", ".join(f"({c}, {n})" for c, n in settings.strata)
+            + ". 'preset' chains are drawn about the base preset's (below), 'zoo' chains from "
+            "the chain zoo (both regimes of Eq. 2: a slow tail beside a fast resonance, or a fast "
+            "pole beside a slow resonance; simulate/zoo.py); 'coloured' noise is low-pass (corner "
+            "1-15 MHz, order 1-3), through the detection chain, or 1/f^alpha (knee 5-300 kHz, "
+            "alpha 0.7-1.5), drawn per campaign with the same per-sample sd as white."
         )
     rep.add_heading("Truth distribution")
     rep.add_table(["parameter", "drawn from"], settings.dist.describe())
@@ -914,6 +1069,8 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
     post = settings.options.posterior
     _describe(study, settings, rep)
     _coverage_table(sums, n, post, rep)
+    strata = strata_table(recs)
+    _strata_report(strata, post, rep)
     _coverage_checks(sums, checks, recs, bad, n, rep)
     modes = _outliers(settings, recs, ok, bad, n, rep)
     n_all = len(recs)
@@ -936,6 +1093,7 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
         "beat_note_modes": modes,
         "a_coverage_failures_as_misses": {"68": a68_all, "95": a95_all},
         "s_monte_carlo_coverage_95": _mc_coverage(ok),
+        "strata": strata,
     }
     m = min(study.mcmc_campaigns, study.n_campaigns)
     mrecs = []
@@ -943,6 +1101,7 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
         numbers["mcmc_check"], mrecs = _mcmc_cross_check(
             study, settings, ok, folder, pool, progress, rep
         )
+        numbers["mcmc_check"]["strata"] = strata_table(mrecs)
     codes = sorted({r.get("code", "not recorded") for r in recs + mrecs})
     rep.add_text(
         "Campaign records are reused on a rerun whatever the code version; they were computed "
@@ -952,6 +1111,7 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
     )
     numbers["campaign_code"] = codes
     numbers["records"] = [
-        {k: r[k] for k in ("index", "status", "draw", "quantities") if k in r} for r in recs
+        {k: r[k] for k in ("index", "status", "stratum", "draw", "quantities") if k in r}
+        for r in recs
     ]
     return numbers

@@ -20,6 +20,8 @@ Study file layout (every key optional unless marked)::
     effects = ["etalon:amplitude_per_m=1e-7"]
     # bundle = "data/campaign.h5" # ... or load a measurement bundle instead
     campaigns = 200               # coverage: simulated campaigns (truths drawn per campaign)
+    chains = ["preset", "zoo"]    # coverage strata: chains about the presets and/or the zoo's
+    noise = ["white", "coloured"] # coverage strata: white and/or coloured detector noise
 
     [analysis]
     methods = ["crds", "tf-crds"]
@@ -61,6 +63,8 @@ SCHEMA = {
         "effects": [str],
         "bundle": str,
         "campaigns": int,
+        "chains": [str],
+        "noise": [str],
     },
     "analysis": {
         "methods": [str],
@@ -108,6 +112,8 @@ class Study:
     mcmc_campaigns: int = 0
     shape_bounds: str = "free"
     n_seeds: int = 1
+    chain_kinds: tuple = ("preset",)
+    noise_kinds: tuple = ("white",)
 
 
 def _check_type(where, value, kind):
@@ -195,6 +201,16 @@ def _check_study_and_campaign(path: Path, st: dict, cp: dict) -> None:
             parse_effect(e)
         except ValueError as exc:
             raise StudyError(f"{path}: campaign.effects[{i}]: {exc}") from None
+    for key, allowed in (("chains", ("preset", "zoo")), ("noise", ("white", "coloured"))):
+        if key not in cp:
+            continue
+        if st.get("kind") != "coverage":
+            raise StudyError(f"{path}: campaign.{key} sets the strata of a coverage study only")
+        values = cp[key]
+        if not values or len(set(values)) != len(values) or not set(values) <= set(allowed):
+            raise StudyError(
+                f"{path}: campaign.{key} = {values!r} must list different values from {allowed}"
+            )
     for key, lo, hi in (
         ("points", 8, 2000),
         ("samples", 256, 1 << 20),
@@ -298,4 +314,6 @@ def load_study(path) -> Study:
         mcmc_campaigns=an.get("mcmc_campaigns", 0),
         shape_bounds=an.get("shape_bounds", "free"),
         n_seeds=st.get("seeds", 1),
+        chain_kinds=tuple(cp.get("chains", ["preset"])),
+        noise_kinds=tuple(cp.get("noise", ["white"])),
     )

@@ -184,3 +184,80 @@ def test_the_bundle_reports_the_gauges_readings_and_the_truth_the_gas():
         replace(hot, pressure_error_pa=0.0, temperature_error_k=0.0),
     )
     assert truth["line"]["line_area_hz_per_m"] == exact["line"]["line_area_hz_per_m"]
+
+
+def test_the_study_file_has_the_chain_and_noise_strata():
+    from pathlib import Path
+
+    s = load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
+    assert s.chain_kinds == ("preset", "zoo") and s.noise_kinds == ("white", "coloured")
+    settings = cs.settings_of(s)
+    assert settings.strata == [
+        ("preset", "white"),
+        ("preset", "coloured"),
+        ("zoo", "white"),
+        ("zoo", "coloured"),
+    ]
+
+
+def test_strata_draw_zoo_chains_and_coloured_noise_and_leave_the_rest_as_drawn():
+    settings = cs.CoverageSettings(
+        seed=3,
+        campaign=Campaign(),
+        options=None,
+        presets=tuple(PRESETS),
+        chains=("preset", "zoo"),
+        noises=("white", "coloured"),
+    )
+    kinds = {"preset": 0, "zoo": 0}
+    for i in range(40):
+        draw, _, _ = settings.draw(i)
+        chain, noise = settings.strata[i % 4]
+        assert draw.chain.startswith(chain)
+        assert draw.noise.is_white == (noise == "white")
+        assert draw.stratum["chain"] == ("zoo" if chain == "zoo" else cs.PRESET_REGIME[draw.preset])
+        kinds[chain] += 1
+        # the stratum's own draws come last: the line, p, T, noise level are those of the plain draw
+        ss = np.random.SeedSequence(3, spawn_key=(i,))
+        plain = cs.draw_truth(np.random.default_rng(ss.spawn(3)[0]), tuple(PRESETS))
+        assert (draw.pressure_pa, draw.temperature_k, draw.noise_v) == (
+            plain.pressure_pa,
+            plain.temperature_k,
+            plain.noise_v,
+        )
+        if chain == "preset":
+            assert draw.tf == plain.tf
+        else:
+            assert draw.tf != plain.tf
+    assert kinds == {"preset": 20, "zoo": 20}
+    with pytest.raises(ValueError, match="chain kind"):
+        cs.draw_truth(np.random.default_rng(0), tuple(PRESETS), chain_kind="other")
+
+
+def test_a_stratum_out_of_its_binomial_band_is_flagged():
+    def rec(pull, stratum):
+        q = {k: {"pull": pull} for k in cs.STRATUM_QUANTITIES}
+        return {"status": "ok", "stratum": stratum, "quantities": q}
+
+    good = {"chain": "zoo", "noise": "white"}
+    bad = {"chain": "zoo", "noise": "coloured"}
+    rng = np.random.default_rng(2)
+    # 400 campaigns each: N(0, 1) pulls are in band; pulls of sd 2 cover ~62 % at 95 %, far out
+    recs = [rec(float(p), good) for p in rng.standard_normal(400)]
+    recs += [rec(float(p), bad) for p in 2.0 * rng.standard_normal(400)]
+    rows = {r["stratum"]: r for r in cs.strata_table(recs)}
+    assert rows["zoo, white noise"]["quantities"]["A"]["in_band_95"]
+    assert not rows["zoo, coloured noise"]["quantities"]["A"]["in_band_95"]
+    assert rows["zoo, coloured noise"]["campaigns"] == 400
+
+
+def test_strata_keys_are_refused_outside_a_coverage_study(tmp_path):
+    from bayes_tfcrds.studies.spec import StudyError
+
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[study]\nname = "x"\nkind = "tcut"\n[campaign]\nchains = ["zoo"]\n')
+    with pytest.raises(StudyError, match="coverage"):
+        load_study(bad)
+    bad.write_text('[study]\nname = "x"\nkind = "coverage"\n[campaign]\nnoise = ["pink"]\n')
+    with pytest.raises(StudyError, match="noise"):
+        load_study(bad)
