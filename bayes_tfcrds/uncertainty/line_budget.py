@@ -715,10 +715,10 @@ def _h_components(
             "parameters of its fit",
         )
     )
-    for n, r in r_noise_ref.items():
+    rc = refined.cov / np.outer(np.sqrt(np.diag(refined.cov)), np.sqrt(np.diag(refined.cov)))
+    for n, r in consistent_correlations(r_noise_ref, refd, rc).items():
         corr[(noise_name, f"H: {n} (refined on ring-downs)")] = r
     if len(refd) > 1:
-        rc = refined.cov / np.outer(np.sqrt(np.diag(refined.cov)), np.sqrt(np.diag(refined.cov)))
         for a in range(len(refd)):
             for b in range(a + 1, len(refd)):
                 corr[
@@ -728,6 +728,28 @@ def _h_components(
                     )
                 ] = float(rc[a, b])
     return comps, corr
+
+
+def consistent_correlations(r_noise: dict, refd, rc) -> dict:
+    """r(noise, refined p) shrunk, if need be, to be consistent with the refined ones' own rc.
+
+    The two come from different estimators (influence functions for r(noise, p), the
+    refinement's covariance for rc); with two or more refined parameters they can contradict each
+    other (e.g. r = 0.9 with both of two parameters that are anticorrelated), and the budget's
+    correlation matrix would not be positive semi-definite. Consistency needs
+    c^T rc^-1 c <= 1 for the vector c of r(noise, p); above it c is scaled down to the boundary
+    (the smallest change along c), otherwise returned as it is.
+    """
+    names = [n for n in refd if n in r_noise]
+    if len(names) < 2:
+        return dict(r_noise)
+    idx = [list(refd).index(n) for n in names]
+    c = np.array([r_noise[n] for n in names])
+    q = float(c @ np.linalg.solve(rc[np.ix_(idx, idx)], c))
+    if q <= 1.0:
+        return dict(r_noise)
+    c = c / np.sqrt(q) * (1.0 - 1e-9)
+    return {**r_noise, **{n: float(v) for n, v in zip(names, c)}}
 
 
 FORM_WEIGHT_MIN = 1e-4  # BIC weight below which the other H form is not even evaluated
