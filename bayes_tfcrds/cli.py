@@ -546,6 +546,16 @@ def cmd_compare(args) -> int:
         f"x_ref = {r.value:.6e} +/- {r.u:.2e} {comp.unit} ({r.method}{dark}); chi2 = "
         f"{c.chi2:.3f} ({c.dof} dof, p = {c.p_value:.3g}, R_B = {c.birge_ratio:.3f})"
     )
+    if not c.passed and r.method == "weighted mean":
+        _say(
+            "note: the results fail the chi2 test (their scatter exceeds their u); "
+            "--random-effects REML gives the consensus with a dark uncertainty"
+        )
+    if r.kh_q is not None and r.kh_q < 1 and "modified" not in r.method:
+        _say(
+            f"note: Knapp-Hartung q = {r.kh_q:.3g} < 1 shrinks u(x_ref) below the random-effects "
+            "u; --knapp-hartung modified keeps it"
+        )
     return 0
 
 

@@ -325,8 +325,14 @@ def compare(
     """
     labs = tuple(str(lab) for lab in labs)
     x = np.asarray(x, dtype=float)
-    if x.size < 2 or len(set(labs)) != len(labs) or len(labs) != x.size:
-        raise ValueError("a comparison needs at least two results with different names")
+    if x.size < 2 or len(labs) != x.size:
+        raise ValueError("a comparison needs at least two results, one name each")
+    twice = sorted({lab for lab in labs if labs.count(lab) > 1})
+    if twice:
+        raise ValueError(
+            f"results need different names; {', '.join(repr(t) for t in twice)} appear more "
+            "than once (label budget.json results with LABEL=PATH, or rename the CSV rows)"
+        )
     r = np.eye(x.size) if correlation is None else np.asarray(correlation, dtype=float)
     cov = covariance_matrix(u, r)
     if reference.kind == "random-effects":

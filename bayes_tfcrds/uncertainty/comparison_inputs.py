@@ -146,7 +146,8 @@ def _factor(quantity: str, unit: str, where: str) -> float:
     if unit not in accepted:
         raise ComparisonInputError(
             f"{where}: unit {unit!r} is not a unit of {quantity}; use one of "
-            f"{', '.join(repr(a) for a in accepted)} ({unit_name} is used throughout)"
+            f"{', '.join(repr(a) for a in accepted)} ({unit_name} is used throughout), or "
+            "--quantity other to compare another measurand in the unit its rows state"
         )
     return accepted[unit]
 

@@ -73,7 +73,17 @@ def comparison_markdown(comp: Comparison, results) -> str:
     for r in results:
         d = "inf" if math.isinf(dof[r.lab]) else f"{dof[r.lab]:g}"
         lines.append(f"| {r.lab} | {r.value:.6e} | {r.u:.2e} | {d} | {r.source} |")
-    verdict = "passed" if cons.passed else "**failed**: the results are not consistent"
+    verdict = (
+        "passed"
+        if cons.passed
+        else "**failed**: the results are not consistent"
+        + (
+            " (their scatter exceeds their u: `--random-effects REML` gives the consensus with a "
+            "dark uncertainty)"
+            if ref.method == "weighted mean"
+            else ""
+        )
+    )
     lines += [
         "",
         "## Reference value",
@@ -86,9 +96,20 @@ def comparison_markdown(comp: Comparison, results) -> str:
     if ref.method.startswith("random effects"):
         lines += [
             f"Dark uncertainty tau = {ref.tau:.3e} {unit}: the scatter of the results beyond "
-            "their stated u; every u(d) below includes it.",
+            + (
+                "their stated u; every u(d) below includes it."
+                if ref.tau > 0
+                else "their stated u is none here: the consensus is the weighted mean."
+            ),
             "",
         ]
+        if ref.kh_q is not None:
+            lines += [
+                "u(d) below uses the random-effects u(x_ref) before the Knapp-Hartung scaling, "
+                "and U(d) = 2 u(d); the Knapp-Hartung u and its Student-t interval are those of "
+                "x_ref itself.",
+                "",
+            ]
     if ref.kh_q is not None and ref.kh_q < 1 and "modified" not in ref.method:
         lines += [
             f"Note: the Knapp-Hartung q = {ref.kh_q:.3g} < 1 makes u(x_ref) smaller than the "
@@ -124,13 +145,14 @@ def comparison_markdown(comp: Comparison, results) -> str:
 
 def comparison_csv(comp: Comparison) -> str:
     """One row per result: value, u, d, u(d), U(d), E_n, zeta, in the comparison's unit."""
-    rows = ["lab,value,u,d,u_d,U_d,en,zeta,unit,x_ref,u_ref"]
+    rows = ["lab,value,u,d,u_d,U_d,en,zeta,unit,x_ref,u_ref,tau"]
     for v, u, e in zip(comp.values, comp.u, comp.equivalence):
         en = "" if e.en is None else f"{e.en:.6g}"
         zeta = "" if e.zeta is None else f"{e.zeta:.6g}"
         rows.append(
             f"{_csv_name(e.lab)},{v:.10e},{u:.6e},{e.d:.6e},{e.u:.6e},{e.U:.6e},{en},{zeta},"
-            f"{comp.unit},{comp.reference.value:.10e},{comp.reference.u:.6e}"
+            f"{comp.unit},{comp.reference.value:.10e},{comp.reference.u:.6e},"
+            f"{comp.reference.tau:.6e}"
         )
     return "\n".join(rows) + "\n"
 
@@ -159,7 +181,10 @@ def plot_equivalence(comp: Comparison, stem: Path) -> list:
     unit = "" if comp.unit == "1" else f" {comp.unit}"
     ax.set_ylabel(f"$d_i$ / ($10^{{{round(math.log10(scale))}}}${literal(unit)})")
     ax.set_title(
-        literal(f"{comp.quantity}: d_i to the {comp.reference.method}, U (k = {comp.k:g})"),
+        literal(
+            f"{'comparison' if comp.quantity == 'other' else comp.quantity} ({comp.unit}): d_i "
+            f"to the {comp.reference.method}, U (k = {comp.k:g})"
+        ),
         fontsize=9,
     )
     written = []

@@ -178,3 +178,15 @@ def test_compare_refuses_other_results_in_two_units_and_a_stray_knapp_hartung(tm
     assert main([*one, "--quantity", "other", "--knapp-hartung"]) != 0
     assert main([*one, "--quantity", "other", "--reference", "A", "--random-effects", "DL"]) != 0
     assert main([*one, "--quantity", "other"]) == 0
+
+
+def test_compare_points_a_failed_chi2_test_and_a_foreign_unit_to_what_to_do(tmp_path, capsys):
+    (tmp_path / "far.csv").write_text(
+        "lab,value,u,unit\nA,1.0,0.01,mg/kg\nB,1.5,0.01,mg/kg\nC,2.0,0.01,mg/kg\n"
+    )
+    base = ["compare", str(tmp_path / "far.csv"), "-o", str(tmp_path / "o")]
+    assert main([*base, "--quantity", "other"]) == 0
+    assert "--random-effects" in capsys.readouterr().err
+    assert "--random-effects" in (tmp_path / "o" / "comparison.md").read_text()
+    assert main(base) != 0  # mg/kg is not a unit of S: the message names --quantity other
+    assert "--quantity other" in capsys.readouterr().err

@@ -160,11 +160,13 @@ def test_study_figures_have_units_readable_fonts_captions_and_legends_off_the_da
 
 
 class _Run:
-    """The two things corner_figure reads of a sampling run: parameter names and flat draws."""
+    """What corner_figure reads of a sampling run: names, flat draws and the samples' layout."""
 
     def __init__(self, names, flat):
         self.names = tuple(names)
         self._flat = np.asarray(flat)
+        # one ensemble of one walker: (ensembles, steps, walkers, ndim)
+        self.samples = self._flat.reshape(1, -1, 1, self._flat.shape[-1])
 
     def flat(self):
         return self._flat
