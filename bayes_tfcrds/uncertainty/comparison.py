@@ -32,6 +32,7 @@ from scipy import stats
 
 from bayes_tfcrds.uncertainty.random_effects import (
     ESTIMATORS,
+    cochran_q,
     coverage_interval,
     dark_uncertainty,
     knapp_hartung_factor,
@@ -201,8 +202,7 @@ def consistency(x, cov, alpha: float = ALPHA) -> Consistency:
         Their covariance matrix, unit squared.
     """
     x = np.asarray(x, dtype=float)
-    res = x - weighted_mean(x, cov).value
-    chi2 = float(res @ np.linalg.solve(cov, res))
+    chi2 = cochran_q(x, cov)
     dof = x.size - 1
     p = float(stats.chi2.sf(chi2, dof))
     return Consistency(chi2, dof, p, float(np.sqrt(chi2 / dof)), p >= alpha, alpha)

@@ -34,11 +34,9 @@ ESTIMATORS = ("DL", "REML", "ML")
 def cochran_q(x, cov) -> float:
     """Q = r^T V^-1 r about the GLS weighted mean: the chi2 of the consistency test (unitless)."""
     x = np.asarray(x, dtype=float)
-    w = np.linalg.inv(cov)
-    one = np.ones(x.size)
-    mu = (one @ w @ x) / (one @ w @ one)
-    r = x - mu
-    return float(r @ w @ r)
+    w_one = np.linalg.solve(cov, np.ones(x.size))
+    r = x - (w_one @ x) / w_one.sum()
+    return float(r @ np.linalg.solve(cov, r))
 
 
 def tau_dersimonian_laird(x, cov) -> float:
