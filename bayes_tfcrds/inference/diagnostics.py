@@ -36,8 +36,11 @@ Diagnostics (per parameter and per derived quantity, :func:`chain_diagnostics`)
 
 Gates (:class:`Gates`): every reported quantity needs R-hat < ``rhat_max``, bulk and tail
 ESS > ``ess_min`` and kept length > ``min_tau_multiple`` * tau_int. If a gate fails, all
-ensembles are extended by 50 % of the current length, up to ``max_steps``; after that the
-result comes back with ``passed=False`` and a ``status`` naming the gate and quantity.
+ensembles are extended, up to ``max_steps``, by what the failed gates say is missing (the
+tau and ESS gates scale with the kept length: 1.1 x the largest shortfall factor; an R-hat
+failure: half again; each extension between 1.2x and 3x, see
+:func:`bayes_tfcrds.inference.runner.extended_length`); after ``max_steps`` the result comes
+back with ``passed=False`` and a ``status`` naming the gate and quantity.
 
 Burn-in rule: ``burn = min(max(ceil(0.2 n), ceil(2 tau_pilot)), n // 2)`` where
 ``tau_pilot`` is the largest tau_int over parameters and ensembles measured on steps

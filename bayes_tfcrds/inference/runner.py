@@ -141,6 +141,40 @@ class _StopRequest:
 
 
 # --------------------------------------------------------------------------- runner
+GROWTH_MIN, GROWTH_MAX = 1.2, 3.0  # bounds of one extension (factor on the chain length)
+GROWTH_MARGIN = 1.1  # aim past the gate: tau_int and ESS are themselves estimates
+GROWTH_RHAT = 1.5  # an R-hat failure says nothing about how much longer: half again
+
+
+def extended_length(result: SamplingResult, n: int, gates: Gates, max_steps: int) -> int:
+    """The chain length to extend to after ``result`` (``n`` steps) failed a gate.
+
+    Only the kept length matters to the tau and ESS gates (ESS grows in proportion to it, and
+    the kept share of the chain is about constant), so the chain grows by the largest factor
+    they report missing, times a margin; an R-hat failure grows it by half. The factor is held
+    within [1.2, 3]: a little growth is not worth a round of diagnostics, and too much on a
+    noisy tau estimate wastes work.
+    """
+    gated = {
+        k: d for k, d in result.diagnostics.items() if gates.gated is None or k in gates.gated
+    } or result.diagnostics
+    factor = GROWTH_MIN
+    for d in gated.values():
+        if not d["rhat"] < gates.rhat_max:
+            factor = max(factor, GROWTH_RHAT)
+        for key, need in (
+            ("n_tau", gates.min_tau_multiple),
+            ("ess_bulk", gates.ess_min),
+            ("ess_tail", gates.ess_min),
+        ):
+            have = d[key]
+            if not have > need:
+                missing = need / have if have > 0 and math.isfinite(have) else GROWTH_MAX
+                factor = max(factor, GROWTH_MARGIN * missing)
+    factor = min(factor, GROWTH_MAX)
+    return min(int(max_steps), math.ceil(round(factor * n, 6)))
+
+
 def _evaluate(
     names, chains, log_prob, accepted, derived_fn, gates, label, priors=(), units=None
 ) -> SamplingResult:
@@ -301,7 +335,7 @@ def run_ensembles(
             )
             if result.passed or target >= max_steps:
                 return result
-            target = min(int(max_steps), target + math.ceil(0.5 * target))
+            target = extended_length(result, target, gates, int(max_steps))
     finally:
         stop.__exit__()
         for b in bars:

@@ -274,13 +274,14 @@ def write_outputs(
     return written
 
 
-#: the coverage study of the Laplace posterior, as committed in the source repository
-COVERAGE_NUMBERS = Path("reports") / "coverage" / "numbers.json"
+#: the coverage study of the Laplace posterior (studies/coverage_laplace.toml), as committed in
+#: the source repository; the shipped MCMC path has its own, reports/coverage
+COVERAGE_NUMBERS = Path("reports") / "coverage_laplace" / "numbers.json"
 COVERAGE_QUANTITIES = ("A", "A/A_ref", "A (u_c)", "A/A_ref (u_c)")
 
 
 #: the same figures shipped with the package (an installed package has no reports/); a test
-#: keeps it equal to laplace_coverage(reports/coverage/numbers.json)
+#: keeps it equal to laplace_coverage(reports/coverage_laplace/numbers.json)
 PACKAGED_COVERAGE = Path(__file__).resolve().parents[1] / "data" / "laplace_coverage.json"
 
 
@@ -288,8 +289,9 @@ def laplace_coverage(path=None) -> dict | None:
     """The measured coverage of the Laplace posterior, read from the coverage study's numbers.
 
     ``path``: a coverage study's numbers.json; by default the copy shipped with the package
-    (``data/laplace_coverage.json``, extracted from reports/coverage/numbers.json). None when the
-    file is absent or is not a Laplace coverage study. Returns the file, the number of campaigns,
+    (``data/laplace_coverage.json``, extracted from reports/coverage_laplace/numbers.json).
+    None when the file is absent or is not a Laplace coverage study. Returns the file, the
+    number of campaigns,
     and per quantity the fraction of campaigns whose 68 % and 95 % intervals held the truth.
     """
     if path is None:

@@ -68,7 +68,7 @@ class _Capture:
 
 
 def _coverage_file():
-    return json.loads((ROOT / "reports" / "coverage" / "numbers.json").read_text())
+    return json.loads((ROOT / "reports" / "coverage_laplace" / "numbers.json").read_text())
 
 
 def test_laplace_budget_is_labelled_an_approximation_with_its_measured_coverage(laplace):
@@ -298,17 +298,17 @@ def test_coverage_is_quoted_only_from_a_laplace_coverage_study(tmp_path):
     assert laplace_coverage(tmp_path / "absent.json") is None
     record = posterior_record("laplace", tmp_path / "absent.json")
     assert record["approximation"] and "coverage" not in record["measured_coverage"]
-    assert "reports/coverage/numbers.json" in record["measured_coverage"]["source"]
+    assert "reports/coverage_laplace/numbers.json" in record["measured_coverage"]["source"]
 
 
 def test_packaged_laplace_coverage_equals_the_committed_coverage_report():
     """An installed package has no reports/: budget quotes the copy in data/. It must be the
-    committed report's figures. After regenerating reports/coverage, refresh it with
-    ``json.dumps(laplace_coverage("reports/coverage/numbers.json"), indent=1)`` into
+    committed report's figures. After regenerating reports/coverage_laplace, refresh it with
+    ``json.dumps(laplace_coverage("reports/coverage_laplace/numbers.json"), indent=1)`` into
     bayes_tfcrds/data/laplace_coverage.json."""
     from pathlib import Path
 
     from bayes_tfcrds.uncertainty.outputs import laplace_coverage
 
-    report = Path(__file__).resolve().parents[2] / "reports" / "coverage" / "numbers.json"
+    report = Path(__file__).resolve().parents[2] / "reports" / "coverage_laplace" / "numbers.json"
     assert laplace_coverage() == laplace_coverage(report)

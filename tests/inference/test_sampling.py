@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import functools
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -27,7 +28,7 @@ from bayes_tfcrds.inference.diagnostics import (
     integrated_time,
 )
 from bayes_tfcrds.inference.result import SamplingResult
-from bayes_tfcrds.inference.runner import _evaluate, run_ensembles
+from bayes_tfcrds.inference.runner import _evaluate, extended_length, run_ensembles
 
 MU = np.array([1.0, -2.0, 0.5])
 COV = np.array([[1.0, 0.8, 0.2], [0.8, 2.0, 0.5], [0.2, 0.5, 0.5]])
@@ -228,8 +229,41 @@ def test_too_short_run_is_reported_as_failed_not_passed():
         vectorize=True,
     )
     assert not r.passed
-    assert r.n_steps == 320  # extended 200 -> 300 -> 320 (capped at max_steps)
+    assert r.n_steps == 320  # extended from 200 by what the tau gate misses, capped at max_steps
     assert r.status.startswith("failed after 320 steps") and "n_tau(" in r.status
+
+
+def _diag(rhat=1.0, ess=5000.0, n_tau=100.0):
+    return {"rhat": rhat, "ess_bulk": ess, "ess_tail": ess, "n_tau": n_tau, "tau_int": 30.0}
+
+
+@pytest.mark.parametrize(
+    "diagnostics, expected",
+    [
+        # kept length / tau_int = 40 of the 50 needed: 1.1 * 50/40 = 1.375 -> 2750 steps
+        ({"a": _diag(n_tau=40.0), "b": _diag()}, 2750),
+        # a hair short: the smallest extension, 1.2x
+        ({"a": _diag(n_tau=49.9)}, 2400),
+        # R-hat alone says nothing about how much longer: half again
+        ({"a": _diag(rhat=1.02)}, 3000),
+        # ESS 100 of 400: 4.4x wanted, one extension is at most 3x
+        ({"a": _diag(ess=100.0)}, 6000),
+        # the largest shortfall decides: ESS 250 of 400 (1.76x) over tau 45 of 50 (1.22x)
+        ({"a": _diag(n_tau=45.0), "b": _diag(ess=250.0)}, 3520),
+        # a NaN diagnostic grows the chain as much as one extension may
+        ({"a": _diag(n_tau=float("nan"))}, 6000),
+    ],
+)
+def test_a_failed_run_is_extended_by_what_its_gates_miss(diagnostics, expected):
+    result = type("R", (), {"diagnostics": diagnostics})()
+    assert extended_length(result, 2000, Gates(), 24000) == expected
+    assert extended_length(result, 2000, Gates(), 2500) == min(expected, 2500)  # max_steps caps
+
+
+def test_the_extension_follows_the_gated_quantities_only():
+    diagnostics = {"p": _diag(ess=50.0), "h": _diag(n_tau=40.0)}  # p not gated (a mode swap)
+    result = type("R", (), {"diagnostics": diagnostics})()
+    assert extended_length(result, 2000, Gates(gated=("h",)), 24000) == 2750
 
 
 def bimodal_logp(x):
@@ -317,9 +351,12 @@ def test_chunking_scalar_log_prob_and_pool_do_not_change_the_chains():
     assert_same(ref, pooled)
 
 
-def test_progress_bars_are_labelled_per_ensemble(capsys):
-    short_run(n=30, progress=True, label="H(f) fit")
-    err = capsys.readouterr().err
+def test_progress_bars_are_labelled_per_ensemble(capsys, caplog):
+    # stderr is not a terminal under pytest: the bars are periodic log lines, captured here
+    # whatever logging configuration an earlier test (or none) left behind
+    with caplog.at_level(logging.INFO, logger="bayes_tfcrds.output.progress"):
+        short_run(n=30, progress=True, label="H(f) fit")
+    err = capsys.readouterr().err + caplog.text
     assert all(f"H(f) fit ensemble {i}" in err for i in range(4))
 
 

@@ -148,8 +148,18 @@ def test_finished_campaigns_are_reused_and_workers_do_not_change_results(
 def test_study_file_is_valid():
     from pathlib import Path
 
-    s = load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
-    assert s.kind == "coverage" and s.n_campaigns >= 200 and s.posterior == "laplace"
+    root = Path(__file__).resolve().parents[2] / "studies"
+    shipped = load_study(root / "coverage.toml")
+    laplace = load_study(root / "coverage_laplace.toml")
+    # the committed coverage report calibrates what budget ships (emcee, its default first
+    # length); the Laplace study analyses the very same campaigns
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
+
+    assert shipped.kind == "coverage" and shipped.n_campaigns >= 200
+    assert shipped.posterior == "mcmc" and shipped.mcmc_steps == BudgetOptions().n_steps
+    assert laplace.posterior == "laplace" and laplace.mcmc_campaigns == 0
+    same = ("seed", "n_campaigns", "presets", "chain_kinds", "noise_kinds", "points", "samples")
+    assert all(getattr(shipped, k) == getattr(laplace, k) for k in same)
 
 
 def test_calibration_draws_temperature_and_the_gauges_reading_errors():
@@ -249,6 +259,42 @@ def test_a_stratum_out_of_its_binomial_band_is_flagged():
     assert rows["zoo, white noise"]["quantities"]["A"]["in_band_95"]
     assert not rows["zoo, coloured noise"]["quantities"]["A"]["in_band_95"]
     assert rows["zoo, coloured noise"]["campaigns"] == 400
+
+
+@pytest.mark.parametrize("p, n", [(0.95, 33), (0.68, 33), (0.95, 200), (0.68, 50)])
+def test_the_chance_of_a_band_exit_is_the_simulated_one(p, n):
+    # independent check: calibrated coverages simulated as Binomial(n, p) counts; 200 000 draws
+    # give the exit rate to +/- 0.001 (1 sd), so 0.004 is a 4-sigma tolerance
+    hits = np.random.default_rng(5).binomial(n, p, 200_000)
+    simulated = np.mean(~np.array([cs.in_band(h / n, p, n) for h in range(n + 1)])[hits])
+    assert abs(cs.chance_exit(p, n) - simulated) < 0.004
+    assert 0.0 < cs.chance_exit(p, n) < 0.1  # a two-sigma band: a few per cent exit by chance
+
+
+def test_band_exits_are_counted_against_chance():
+    rng = np.random.default_rng(3)
+
+    def table(sd):
+        recs = [
+            {
+                "status": "ok",
+                "stratum": {"chain": c, "noise": nz},
+                "quantities": {
+                    k: {"pull": float(sd * rng.standard_normal())} for k in cs.STRATUM_QUANTITIES
+                },
+            }
+            for c in ("preset", "zoo")
+            for nz in ("white", "coloured")
+            for _ in range(50)
+        ]
+        return cs.band_exits(cs.strata_table(recs))
+
+    calibrated, wide = table(1.0), table(2.0)
+    assert calibrated["tests"] == 4 * len(cs.STRATUM_QUANTITIES) * 2
+    # 40 tests at ~3-6 % each: about 2 exits expected, and a calibrated table is not surprising
+    assert 1.0 < calibrated["expected"] < 3.0 and calibrated["p_value"] > 0.01
+    # pulls twice too wide leave nearly every band, which chance cannot explain
+    assert wide["observed"] > 30 and wide["p_value"] < 1e-10
 
 
 def test_strata_keys_are_refused_outside_a_coverage_study(tmp_path):
