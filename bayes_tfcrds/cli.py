@@ -446,7 +446,13 @@ def cmd_budget(args) -> int:
             )
         except (LineFitError, AnalysisError, ValueError) as exc:
             return _fail(exc, 1)
-        write_outputs(res, args.output, seed=args.seed, truth=load_truth(args.file[0]))
+        write_outputs(
+            res,
+            args.output,
+            seed=args.seed,
+            truth=load_truth(args.file[0]),
+            workers=args.workers,
+        )
     except KeyboardInterrupt:
         print(file=sys.stderr)
         _say(

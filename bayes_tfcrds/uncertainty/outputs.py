@@ -202,17 +202,31 @@ def corner_figure(run_key: str, run, truth=None, config=None):
     return fig
 
 
+def write_corner(key: str, run, truth, config, path) -> Path:
+    """Draw the corner plot of posterior run ``key`` and save it at ``path`` (atomically)."""
+    plt = pyplot()
+    fig = corner_figure(key, run, truth, config)
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=RASTER_DPI)
+    plt.close(fig)
+    return Path(path)
+
+
 def write_outputs(
-    result: BudgetResult, outdir, seed: int | None = None, truth: dict | None = None
+    result: BudgetResult,
+    outdir,
+    seed: int | None = None,
+    truth: dict | None = None,
+    workers: int = 1,
 ) -> list:
     """budget.json, budget tables (Markdown, CSV), posteriors (arviz netCDF) and corner plots.
 
     Every file goes through a temporary name and a rename, so none is ever half-written.
     ``truth`` (the bundle's /truth, from bayes_tfcrds.bundle.reader.load_truth) adds truth lines
-    to the corner plots of a simulated bundle.
+    to the corner plots of a simulated bundle. With ``workers`` > 1 the corner plots (seconds
+    each) are drawn in that many processes while this one writes the rest; the files are the
+    same.
     """
-    plt = pyplot()
-
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
     # temporary files left by an earlier run that was killed while writing (a live run's stay)
@@ -262,15 +276,25 @@ def write_outputs(
     )
     atomic_write_text(out / "tau_posterior.csv", "\n".join(lines) + "\n")
     written += [out / "budget.md", out / "budget.csv", out / "tau_posterior.csv"]
-    for key, run in result.runs.items():
-        path = out / f"posterior_{key}.nc"
-        run.save_netcdf(path)
-        written.append(path)
-        fig = corner_figure(key, run, truth, result.summary.get("configuration"))
-        with atomic_path(out / f"corner_{key}.png", suffix=".png") as tmp:
-            fig.savefig(tmp, dpi=RASTER_DPI)
-        plt.close(fig)
-        written.append(out / f"corner_{key}.png")
+    config = result.summary.get("configuration")
+    corners = [
+        (key, run, truth, config, out / f"corner_{key}.png") for key, run in result.runs.items()
+    ]
+    pool = None
+    if workers > 1 and len(corners) > 1:
+        from concurrent.futures import ProcessPoolExecutor
+
+        pool = ProcessPoolExecutor(max_workers=min(int(workers), len(corners)))
+    try:
+        drawn = [pool.submit(write_corner, *c) for c in corners] if pool else []
+        for key, run in result.runs.items():
+            path = out / f"posterior_{key}.nc"
+            run.save_netcdf(path)
+            written.append(path)
+        written += [f.result() for f in drawn] if pool else [write_corner(*c) for c in corners]
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     return written
 
 

@@ -104,19 +104,54 @@ SIGN_CLEARANCE = 5.0  # |A_r| / u(A_r) above which the A_r branch is fixed by th
 OVERDISPERSION = 3.0  # start spread in units of the least-squares sd
 
 
+# closer and closer in until a start is inside the support; never onto the centre itself: walkers
+# that coincide span less than the parameter space, and the ensemble moves could never leave it
+START_SHRINKS = (0.7, 0.5, 0.3, 0.1, 0.03, 1e-2, 1e-3, 1e-4, 1e-6)
+START_WIDTH_SHARE = 0.25  # the widest start spread: a quarter of the support in each coordinate
+
+
+def capped_spread(post, spread, inflate=OVERDISPERSION) -> np.ndarray:
+    """``spread`` with ``inflate * spread`` at most a quarter of each coordinate's support.
+
+    A least-squares sd can exceed the whole support (a beat note that does not constrain the
+    resonance gives relative sd of thousands); starts drawn with it are all outside.
+    """
+    width = np.array([p.sample_width for p in post.priors], float)
+    cap = np.where(np.isfinite(width), START_WIDTH_SHARE * width / inflate, np.inf)
+    return np.minimum(np.asarray(spread, float), cap)
+
+
+def _redraw_outside(post, x, redraw, rng):
+    """Draw the starts of ``x`` outside the support again, closer in (START_SHRINKS).
+
+    ``redraw(shrink, rows, z)`` gives the new starts of ``rows`` from normal draws ``z``, their
+    spread scaled by ``shrink``. Raises when no start near a centre is inside the support.
+    """
+    for shrink in START_SHRINKS:
+        bad = ~np.isfinite(post(x))
+        if not bad.any():
+            return x
+        x[bad] = redraw(shrink, bad, rng.standard_normal((int(bad.sum()), x.shape[1])))
+    bad = ~np.isfinite(post(x))
+    if bad.any():
+        raise ValueError(
+            f"no start inside the prior's support near the least-squares solution (sampled "
+            f"coordinates {post.sample_names}, start {x[np.argmax(bad)]}): it lies on or outside "
+            "a bound of the posterior's support"
+        )
+    return x
+
+
 def dispersed_starts(post, x0, spread, rng, n, inflate=OVERDISPERSION):
     """``n`` starting points spread ``inflate`` times wider than the least-squares sd.
 
     Over-dispersed starts let R-hat see a second mode or a slow direction (Gelman & Rubin 1992);
-    points outside the posterior's support are drawn again, closer in, until every one is inside.
+    the spread is capped at a quarter of the support (:func:`capped_spread`), and points outside
+    the support are drawn again, closer in, until every one is inside (never onto ``x0``).
     """
+    spread = capped_spread(post, spread, inflate)
     x = x0 + inflate * spread * rng.standard_normal((n, x0.size))
-    for shrink in (0.7, 0.5, 0.3, 0.1, 0.0):
-        bad = ~np.isfinite(post(x))
-        if not bad.any():
-            return x
-        x[bad] = x0 + shrink * inflate * spread * rng.standard_normal((int(bad.sum()), x0.size))
-    return x
+    return _redraw_outside(post, x, lambda shrink, _, z: x0 + shrink * inflate * spread * z, rng)
 
 
 IS_POOL = 2  # beat-note draws per kept H draw, weighted by the ring-down likelihood
@@ -251,13 +286,11 @@ def mixture_starts(post, modes: MixtureProposal, rng, n, inflate=OVERDISPERSION)
     chol = np.linalg.cholesky(modes.covs) / MODE_INFLATE
     z = rng.standard_normal((n, modes.ndim))
     x = modes.means[k] + inflate * np.einsum("nij,nj->ni", chol[k], z)
-    for shrink in (0.7, 0.5, 0.3, 0.1, 0.0):
-        bad = ~np.isfinite(post(x))
-        if not bad.any():
-            return x
-        zb = rng.standard_normal((int(bad.sum()), modes.ndim))
-        x[bad] = modes.means[k[bad]] + shrink * inflate * np.einsum("nij,nj->ni", chol[k[bad]], zb)
-    return x
+
+    def redraw(shrink, bad, z):
+        return modes.means[k[bad]] + shrink * inflate * np.einsum("nij,nj->ni", chol[k[bad]], z)
+
+    return _redraw_outside(post, x, redraw, rng)
 
 
 H_GATE_FREQUENCIES = 8  # log-spaced frequencies at which H(f) is gated

@@ -72,3 +72,57 @@ def test_a_pool_the_ring_downs_reject_entirely_has_zero_ess(monkeypatch):
     res = ps.ring_down_weights(None, draws, 4, np.random.default_rng(0))
     assert res.ess == pytest.approx(2.0, rel=1e-12)
     assert set(res.picks) <= {0, 1}
+
+
+def _walkers_independent(x):
+    """emcee's check on an initial ensemble (EnsembleSampler refuses it otherwise)."""
+    c = x - x.mean(axis=0)
+    c = c / np.abs(c).max(axis=0)
+    c = c / np.sqrt(np.sum(c**2, axis=0))
+    return np.all(np.isfinite(c)) and np.linalg.cond(c) <= 1e8
+
+
+def test_starts_stay_distinct_when_the_least_squares_sd_exceeds_the_support():
+    # coverage campaign 18 (studies/coverage.toml): a zoo chain whose beat note leaves the
+    # resonance unconstrained; its least-squares sd of log f_c was ~4000 (the support spans 23),
+    # every start fell outside, and the old fallback put all walkers on the optimum: emcee
+    # refused the ensemble ("large condition number") and the campaign could not be analysed
+    from bayes_tfcrds.studies.coverage import settings_of, simulate_draw
+    from bayes_tfcrds.studies.spec import load_study
+    from bayes_tfcrds.uncertainty.posterior_steps import capped_spread
+
+    root = __import__("pathlib").Path(__file__).resolve().parents[2]
+    settings = settings_of(load_study(root / "studies" / "coverage.toml"))
+    draw, g_sim, _ = settings.draw(18)
+    bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
+    beat, post, p0, modes = _beat_posterior(next(iter(bundle.configs.values())), BudgetOptions())
+    x = p0(np.random.default_rng(1), 16)
+    assert np.all(np.isfinite(post(x)))
+    assert len(np.unique(x, axis=0)) == 16 and _walkers_independent(x)
+    # the cap binds here (that is the case), and a quarter of the support is its size
+    width = np.array([p.sample_width for p in post.priors])
+    sd0 = np.sqrt(np.diag(beat.cov))
+    capped = capped_spread(post, np.full(width.size, 1e4))
+    assert np.all(capped[np.isfinite(width)] <= 0.25 * width[np.isfinite(width)] / 3.0 + 1e-12)
+    assert modes is not None or np.any(sd0 > width)
+
+
+def test_a_start_outside_the_support_is_refused_with_the_reason():
+    from bayes_tfcrds.inference.posteriors import Prior
+    from bayes_tfcrds.uncertainty.posterior_steps import dispersed_starts
+
+    class Box:  # a posterior flat on 0 < x < 1 in both coordinates
+        priors = (Prior("a", "uniform", 0.0, 1.0, "1"), Prior("b", "uniform", 0.0, 1.0, "1"))
+        sample_names = ("a", "b")
+
+        def __call__(self, x):
+            x = np.atleast_2d(x)
+            return np.where(np.all((x > 0) & (x < 1), axis=1), 0.0, -np.inf)
+
+    rng = np.random.default_rng(0)
+    inside = dispersed_starts(Box(), np.array([0.5, 0.999999]), np.array([0.1, 0.1]), rng, 12)
+    assert np.all(np.isfinite(Box()(inside))) and _walkers_independent(inside)
+    on_bound = dispersed_starts(Box(), np.array([0.5, 1.0]), np.array([0.1, 0.1]), rng, 12)
+    assert np.all(np.isfinite(Box()(on_bound)))  # half of every neighbourhood is inside
+    with pytest.raises(ValueError, match="bound of the posterior's support"):
+        dispersed_starts(Box(), np.array([0.5, 1.5]), np.array([0.1, 0.1]), rng, 12)

@@ -30,7 +30,7 @@ def _budget_json(bundle, workers, out):
     res = run_budget(
         bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), outdir=out, workers=workers
     )
-    write_outputs(res, out, seed=1)
+    write_outputs(res, out, seed=1, workers=workers)
     data = json.loads((out / "budget.json").read_text())
     data.pop("provenance", None)
     return res, data
@@ -45,6 +45,10 @@ def test_two_workers_give_the_same_budget_bit_for_bit(bundle, tmp_path):
     assert set(two.runs) == {"h", "line", "cmds"}
     assert one.tau_table == two.tau_table
     assert (tmp_path / "two" / "chains_cmds.h5").stat().st_size > 0
+    # the corner plots drawn in worker processes are the very files drawn in this one
+    for key in ("h", "line", "cmds"):
+        png = f"corner_{key}.png"
+        assert (tmp_path / "one" / png).read_bytes() == (tmp_path / "two" / png).read_bytes()
 
 
 def test_the_corner_plot_thins_whole_steps():
