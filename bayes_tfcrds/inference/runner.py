@@ -146,6 +146,13 @@ GROWTH_MARGIN = 1.1  # aim past the gate: tau_int and ESS are themselves estimat
 GROWTH_RHAT = 1.5  # an R-hat failure says nothing about how much longer: half again
 
 
+def _gated(diagnostics: dict, gates: Gates) -> dict:
+    """The diagnostics of the quantities the gates apply to (all when none is named)."""
+    return {
+        k: d for k, d in diagnostics.items() if gates.gated is None or k in gates.gated
+    } or diagnostics
+
+
 def extended_length(result: SamplingResult, n: int, gates: Gates, max_steps: int) -> int:
     """The chain length to extend to after ``result`` (``n`` steps) failed a gate.
 
@@ -155,9 +162,7 @@ def extended_length(result: SamplingResult, n: int, gates: Gates, max_steps: int
     within [1.2, 3]: a little growth is not worth a round of diagnostics, and too much on a
     noisy tau estimate wastes work.
     """
-    gated = {
-        k: d for k, d in result.diagnostics.items() if gates.gated is None or k in gates.gated
-    } or result.diagnostics
+    gated = _gated(result.diagnostics, gates)
     factor = GROWTH_MIN
     for d in gated.values():
         if not d["rhat"] < gates.rhat_max:
@@ -193,9 +198,7 @@ def _evaluate(
                 raise ValueError(f"derived quantity {nm!r} clashes with a parameter name")
             derived[nm] = _frozen(np.asarray(v, dtype=float).reshape(shape))
             diagnostics[nm] = chain_diagnostics(derived[nm])
-    gated = {
-        k: v for k, v in diagnostics.items() if gates.gated is None or k in gates.gated
-    } or diagnostics
+    gated = _gated(diagnostics, gates)
     failures = _gate_failures(gated, gates)
     status = "passed" if not failures else f"failed after {n} steps: " + "; ".join(failures)
     rh = [d["rhat"] for d in gated.values()]
