@@ -340,7 +340,7 @@ def _linefit_warnings(result, t_cut_s: float) -> list[str]:
         lines.append(
             f"note: {', '.join(result.shape_at_bound)} held at 0 by --shape-bounds physical"
         )
-    if result.noise is not None and not result.noise.white:
+    if result.noise is not None and result.noise.kappa_applied:
         lines.append(f"warning: {result.noise.summary_line()}")
     return lines
 
@@ -466,9 +466,10 @@ def cmd_budget(args) -> int:
     if opts.posterior != "mcmc":
         _result(posterior_line(posterior_record(opts.posterior)))
     noise = res.summary.get("noise")
-    if noise and not noise["white"]:
+    if noise and noise.get("kappa_applied", not noise["white"]):
+        what = "coloured" if not noise["white"] else "white at the 1e-3 tests but has a 1/f term"
         _say(
-            f"warning: the ring-down noise is coloured (kappa = {noise['kappa_median']:.3g}): "
+            f"warning: the ring-down noise is {what} (kappa = {noise['kappa_median']:.3g}): "
             "u(tau) and every ring-down likelihood use noise_v sqrt(kappa) (budget.md, "
             "'Ring-down noise')"
         )

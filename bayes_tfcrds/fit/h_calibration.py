@@ -254,7 +254,7 @@ def account_for_noise_colour(
         prepared, diagnosis = account_for_noise(
             config, tf=None if beat is None else beat.params, window=window
         )
-        if confirm and beat is not None and not diagnosis.white:
+        if confirm and beat is not None and diagnosis.kappa_applied:
             try:
                 refined = calibrate(config, window=window, beat=beat).params
             except (ValueError, np.linalg.LinAlgError):  # AnalysisError: not converged

@@ -14,7 +14,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit, refine_on_records
+from bayes_tfcrds.fit.h_calibration import (
+    BEAT_FREE,
+    AnalysisError,
+    beat_note_fit,
+    refine_on_records,
+)
 from bayes_tfcrds.fit.refine import (
     HPrior,
     from_sample,
@@ -24,7 +29,12 @@ from bayes_tfcrds.fit.refine import (
 )
 from bayes_tfcrds.inference.diagnostics import Gates
 from bayes_tfcrds.inference.moves import MixtureProposal, mode_jump_move
-from bayes_tfcrds.inference.posteriors import H_PRIORS, BeatNotePosterior, LinePosterior
+from bayes_tfcrds.inference.posteriors import (
+    H_PRIORS,
+    BeatNotePosterior,
+    LinePosterior,
+    outside_priors,
+)
 from bayes_tfcrds.inference.runner import run_ensembles
 from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, transfer_function_array
 from bayes_tfcrds.uncertainty.propagate import model_of
@@ -177,10 +187,17 @@ class RingDownWeights:
         return bool(self.ess >= IS_ESS_MIN)
 
 
-def ring_down_weights(refined, beat_draws, n: int, rng, names=BEAT_FREE) -> RingDownWeights:
-    """Weight ``beat_draws`` (columns ``names``) by the ring-down likelihood; resample ``n``."""
+def ring_down_weights(
+    refined, beat_draws, n: int, rng, names=BEAT_FREE, inside=None
+) -> RingDownWeights:
+    """Weight ``beat_draws`` (columns ``names``) by the ring-down likelihood; resample ``n``.
+
+    ``inside`` (bool per draw) marks the draws inside the prior's support: the others have prior
+    density 0, so weight 0.
+    """
     logw = ringdown_log_likelihood(refined, beat_draws, names)
-    logw = np.where(np.isfinite(logw), logw, -np.inf)
+    ok = np.isfinite(logw) if inside is None else np.isfinite(logw) & inside
+    logw = np.where(ok, logw, -np.inf)
     top = np.max(logw)
     if np.isfinite(top):
         w = np.exp(logw - top)
@@ -409,6 +426,64 @@ def _refinement(config, options, beat, free):
     )
 
 
+def in_support(draws: np.ndarray, priors) -> np.ndarray:
+    """Rows of ``draws`` (n, len(priors), natural units) where every prior's density is > 0."""
+    d = np.atleast_2d(np.asarray(draws, float))
+    return ~outside_priors(priors, {p.parameter: d[:, k] for k, p in enumerate(priors)})
+
+
+SUPPORT_REDRAWS = 20  # conditional scatter redrawn for draws outside the prior's support
+
+
+def _conditional_inside(draws, refined, others, io, ir, priors, rng):
+    """``draws`` with the refined columns drawn from their conditional, truncated to the support.
+
+    The refinement's conditional is Gaussian in the sampled parametrisation and knows nothing of
+    the prior's bounds; a draw it puts outside has prior density 0 and is drawn again.
+    """
+    draws[:, ir] = refined.draw_given(draws[:, io], others, rng)
+    for _ in range(SUPPORT_REDRAWS):
+        out = ~in_support(draws, priors)
+        if not out.any():
+            break
+        sub = draws[out]
+        sub[:, ir] = refined.draw_given(sub[:, io], others, rng)
+        draws[out] = sub
+    return draws
+
+
+def _support_error(joint, refined, names, priors, pool: int) -> AnalysisError:
+    """Why no joint draw of H is physical.
+
+    The refined parameters that leave the prior's support, and the beat note's spread of the
+    others against the point the refinement linearised about.
+    """
+    d = np.atleast_2d(np.asarray(joint, float))
+    lines = []
+    for k, (n, p) in enumerate(zip(names, priors)):
+        col = d[:, k]
+        bad = ~np.isfinite(col) | (col <= p.lower) | (col >= p.upper)
+        if n in refined.free and bad.any():
+            lines.append(
+                f"{n}: {bad.mean():.0%} of draws outside ({p.lower:g}, {p.upper:g}) {p.unit}"
+            )
+        elif n not in refined.free:
+            lo, hi = np.nanpercentile(col, [5, 95])
+            lines.append(
+                f"{n}: beat-note draws {lo:.3g} to {hi:.3g} (5-95 %) about the refinement's "
+                f"{getattr(refined.params, n):.3g}"
+            )
+    at = ", ".join(f"{n} = {getattr(refined.params, n):.4g}" for n in refined.free)
+    return AnalysisError(
+        f"H posterior: the ring-down refinement ({at}) and the beat note's draws of the other H "
+        f"parameters are incompatible: the refinement's conditional, linear about its own point, "
+        f"puts every one of {pool} joint draws outside the prior's support. "
+        f"{'; '.join(lines)}. The beat note leaves those others nearly free (a band that misses "
+        "the chain's corner or resonance): measure it over a wider band, or refine them on the "
+        "ring-downs too (--refine)"
+    )
+
+
 def _joint_draws(beat, post, run, refined, options, rng):
     """Draws of the joint posterior of H (beat note x ring-downs).
 
@@ -418,6 +493,7 @@ def _joint_draws(beat, post, run, refined, options, rng):
     (draws, the same with the conditional mean, weights).
     """
     names = tuple(post.free)
+    priors = [next(p for p in post.priors if p.parameter == n) for n in names]
     others = tuple(n for n in names if n not in refined.free)
     io = [names.index(n) for n in others]
     ir = [names.index(n) for n in refined.free]
@@ -426,12 +502,17 @@ def _joint_draws(beat, post, run, refined, options, rng):
         draws = _pool(beat, post, run, rng, factor * options.n_h_draws)
         beat_draws = draws.copy()
         beat_draws[:, ir] = refined.draw_given(draws[:, io], others, rng=None)
-        weights = ring_down_weights(refined, beat_draws, options.n_h_draws, rng, names)
+        inside = in_support(beat_draws, priors)
+        weights = ring_down_weights(refined, beat_draws, options.n_h_draws, rng, names, inside)
         if weights.passed or factor >= IS_POOL_MAX or draws.shape[0] < factor * options.n_h_draws:
             break
         factor *= 4
+    if not inside.any():
+        raise _support_error(beat_draws, refined, names, priors, inside.size)
     draws, beat_draws = draws[weights.picks], beat_draws[weights.picks]
-    draws[:, ir] = refined.draw_given(draws[:, io], others, rng)
+    draws = _conditional_inside(draws, refined, others, io, ir, priors, rng)
+    if not in_support(draws, priors).all():
+        raise _support_error(draws, refined, names, priors, draws.shape[0])
     return draws, beat_draws, weights
 
 

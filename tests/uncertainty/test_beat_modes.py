@@ -126,3 +126,58 @@ def test_a_start_outside_the_support_is_refused_with_the_reason():
     assert np.all(np.isfinite(Box()(on_bound)))  # half of every neighbourhood is inside
     with pytest.raises(ValueError, match="bound of the posterior's support"):
         dispersed_starts(Box(), np.array([0.5, 1.5]), np.array([0.1, 0.1]), rng, 12)
+
+
+def test_draws_outside_the_prior_support_get_no_weight_and_are_drawn_again(monkeypatch):
+    """The refinement's Gaussian conditional knows nothing of the prior's bounds: a joint draw it
+    puts outside has prior density 0, so weight 0, and its conditional scatter is drawn again."""
+    from bayes_tfcrds.inference.posteriors import H_PRIORS
+    from bayes_tfcrds.uncertainty import posterior_steps as ps
+
+    monkeypatch.setattr(ps, "ringdown_log_likelihood", lambda *a: np.zeros(4))
+    priors = [H_PRIORS["f_c_hz"], H_PRIORS["a_r"]]
+    draws = np.array([[1e5, 1.0], [np.inf, 1.0], [2e10, 1.0], [1e5, -2.0]])
+    inside = ps.in_support(draws, priors)
+    assert inside.tolist() == [True, False, False, False]
+    res = ps.ring_down_weights(None, draws, 8, np.random.default_rng(0), inside=inside)
+    assert set(res.picks) == {0}
+
+    class Refined:  # f_c's conditional: N(log 1e5 + 5 (a_r - 1), 3^2) in log f_c
+        free = ("f_c_hz",)
+
+        def draw_given(self, others_values, others, rng):
+            mean = np.log(1e5) + 5.0 * (np.asarray(others_values)[:, 0] - 1.0)
+            e = 0.0 if rng is None else 3.0 * rng.standard_normal(mean.size)
+            return np.exp(mean + e)[:, None]
+
+    rng = np.random.default_rng(1)
+    d = np.column_stack([np.full(2000, 1e5), np.full(2000, 1.0)])
+    out = ps._conditional_inside(d, Refined(), ("a_r",), [1], [0], priors, rng)
+    # unbounded, about 0.3 % of log-normal draws exceed 1e10 Hz (z = 3.84); all redrawn inside
+    assert ps.in_support(out, priors).all()
+    far = np.column_stack([np.full(4, 1e5), np.full(4, 80.0)])  # conditional mean exp(407) Hz
+    out = ps._conditional_inside(far, Refined(), ("a_r",), [1], [0], priors, rng)
+    assert not ps.in_support(out, priors).any()  # a redraw cannot rescue a mean that far out
+
+
+def test_incompatible_refinement_and_beat_note_fail_with_the_reason():
+    # what campaign 18 of studies/coverage.toml met: the beat note leaves A_r nearly free, the
+    # refinement linearised at another branch sends f_c to 1e17 Hz and beyond
+    from types import SimpleNamespace
+
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.inference.posteriors import H_PRIORS
+    from bayes_tfcrds.physics.transfer_function import TFParams
+    from bayes_tfcrds.uncertainty import posterior_steps as ps
+
+    refined = SimpleNamespace(
+        free=("f_c_hz",), params=TFParams(f_c_hz=3.4e5, a_r=-0.918, f_r_hz=1.6e6, gamma_r=0.2)
+    )
+    joint = np.column_stack([np.full(10, 3e17), np.linspace(1.0, 380.0, 10)])
+    err = ps._support_error(
+        joint, refined, ("f_c_hz", "a_r"), [H_PRIORS["f_c_hz"], H_PRIORS["a_r"]], 10
+    )
+    assert isinstance(err, AnalysisError)
+    msg = str(err)
+    assert "f_c_hz: 100% of draws outside" in msg and "about the refinement's -0.918" in msg
+    assert "--refine" in msg
