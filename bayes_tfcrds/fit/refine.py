@@ -231,8 +231,8 @@ class RefinedTF:
         """Draws of the refined parameters given draws of the others (natural units, (n, n_o)).
 
         phi_R = phi*_R + G (phi_O - phi*_O) + e, e ~ N(0, cov) in the sampled parametrisation:
-        every draw is physical (positive where it must be). With ``rng`` None, e = 0 (the
-        conditional mean).
+        every draw is positive where it must be (the prior's other bounds are the caller's).
+        With ``rng`` None, e = 0 (the conditional mean).
         """
         others = tuple(others)
         ov = np.atleast_2d(np.asarray(others_values, float))

@@ -196,15 +196,16 @@ def ring_down_weights(
     density 0, so weight 0.
     """
     logw = ringdown_log_likelihood(refined, beat_draws, names)
-    ok = np.isfinite(logw) if inside is None else np.isfinite(logw) & inside
-    logw = np.where(ok, logw, -np.inf)
+    inside = np.ones(logw.size, bool) if inside is None else np.asarray(inside, bool)
+    logw = np.where(np.isfinite(logw) & inside, logw, -np.inf)
     top = np.max(logw)
     if np.isfinite(top):
         w = np.exp(logw - top)
         w /= w.sum()
         ess = float(1.0 / np.sum(w * w))
     else:  # the ring-downs reject every draw of this pool: ESS 0 (a larger pool is drawn)
-        w, ess = np.full(logw.size, 1.0 / logw.size), 0.0
+        w = inside / inside.sum() if inside.any() else np.full(logw.size, 1.0 / logw.size)
+        ess = 0.0
     positions = (rng.uniform() + np.arange(n)) / n
     picks = np.minimum(np.searchsorted(np.cumsum(w), positions), w.size - 1)
     return RingDownWeights(pool=int(w.size), ess=ess, picks=picks)
@@ -452,7 +453,7 @@ def _conditional_inside(draws, refined, others, io, ir, priors, rng):
     return draws
 
 
-def _support_error(joint, refined, names, priors, pool: int) -> AnalysisError:
+def _support_error(joint, refined, names, priors, pool: int, outside: int) -> AnalysisError:
     """Why no joint draw of H is physical.
 
     The refined parameters that leave the prior's support, and the beat note's spread of the
@@ -477,7 +478,8 @@ def _support_error(joint, refined, names, priors, pool: int) -> AnalysisError:
     return AnalysisError(
         f"H posterior: the ring-down refinement ({at}) and the beat note's draws of the other H "
         f"parameters are incompatible: the refinement's conditional, linear about its own point, "
-        f"puts every one of {pool} joint draws outside the prior's support. "
+        f"puts {outside} of {pool} joint draws outside the prior's support"
+        f"{'' if outside == pool else f' after {SUPPORT_REDRAWS} redraws'}. "
         f"{'; '.join(lines)}. The beat note leaves those others nearly free (a band that misses "
         "the chain's corner or resonance): measure it over a wider band, or refine them on the "
         "ring-downs too (--refine)"
@@ -508,11 +510,12 @@ def _joint_draws(beat, post, run, refined, options, rng):
             break
         factor *= 4
     if not inside.any():
-        raise _support_error(beat_draws, refined, names, priors, inside.size)
+        raise _support_error(beat_draws, refined, names, priors, inside.size, inside.size)
     draws, beat_draws = draws[weights.picks], beat_draws[weights.picks]
     draws = _conditional_inside(draws, refined, others, io, ir, priors, rng)
-    if not in_support(draws, priors).all():
-        raise _support_error(draws, refined, names, priors, draws.shape[0])
+    left = int(np.sum(~in_support(draws, priors)))
+    if left:
+        raise _support_error(draws, refined, names, priors, draws.shape[0], left)
     return draws, beat_draws, weights
 
 

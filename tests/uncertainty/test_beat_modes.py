@@ -141,22 +141,38 @@ def test_draws_outside_the_prior_support_get_no_weight_and_are_drawn_again(monke
     assert inside.tolist() == [True, False, False, False]
     res = ps.ring_down_weights(None, draws, 8, np.random.default_rng(0), inside=inside)
     assert set(res.picks) == {0}
+    # every likelihood rejected: ESS 0, and the stand-in resample keeps to the support
+    monkeypatch.setattr(ps, "ringdown_log_likelihood", lambda *a: np.full(4, -np.inf))
+    res = ps.ring_down_weights(None, draws, 8, np.random.default_rng(0), inside=inside)
+    assert res.ess == 0.0 and set(res.picks) == {0}
 
-    class Refined:  # f_c's conditional: N(log 1e5 + 5 (a_r - 1), 3^2) in log f_c
+    class Refined:  # f_c's conditional: N(log 1e5 + 5 (a_r - 1), sd^2) in log f_c
         free = ("f_c_hz",)
+        sd = 6.0
 
         def draw_given(self, others_values, others, rng):
             mean = np.log(1e5) + 5.0 * (np.asarray(others_values)[:, 0] - 1.0)
-            e = 0.0 if rng is None else 3.0 * rng.standard_normal(mean.size)
+            e = 0.0 if rng is None else self.sd * rng.standard_normal(mean.size)
             return np.exp(mean + e)[:, None]
 
-    rng = np.random.default_rng(1)
     d = np.column_stack([np.full(2000, 1e5), np.full(2000, 1.0)])
-    out = ps._conditional_inside(d, Refined(), ("a_r",), [1], [0], priors, rng)
-    # unbounded, about 0.3 % of log-normal draws exceed 1e10 Hz (z = 3.84); all redrawn inside
+    # sd 6 in log f_c: P(f_c > 1e10 Hz) = P(z > 1.92) = 2.7 %, and P(f_c < 1 Hz) = 2.7 %
+    first = Refined().draw_given(d[:, [1]], ("a_r",), np.random.default_rng(1))
+    assert np.mean((first[:, 0] >= 1e10) | (first[:, 0] <= 1.0)) > 0.03
+    out = ps._conditional_inside(
+        d.copy(), Refined(), ("a_r",), [1], [0], priors, np.random.default_rng(1)
+    )
     assert ps.in_support(out, priors).all()
+    np.testing.assert_array_equal(out[:, 1], 1.0)  # the others untouched
+    # nothing outside: the same random numbers as one plain conditional draw (no extra draws)
+    Refined.sd = 0.5
+    rng_a, rng_b = np.random.default_rng(2), np.random.default_rng(2)
+    out = ps._conditional_inside(d.copy(), Refined(), ("a_r",), [1], [0], priors, rng_a)
+    plain = Refined().draw_given(d[:, [1]], ("a_r",), rng_b)
+    np.testing.assert_array_equal(out[:, 0], plain[:, 0])
+    assert rng_a.bit_generator.state == rng_b.bit_generator.state
     far = np.column_stack([np.full(4, 1e5), np.full(4, 80.0)])  # conditional mean exp(407) Hz
-    out = ps._conditional_inside(far, Refined(), ("a_r",), [1], [0], priors, rng)
+    out = ps._conditional_inside(far, Refined(), ("a_r",), [1], [0], priors, rng_a)
     assert not ps.in_support(out, priors).any()  # a redraw cannot rescue a mean that far out
 
 
@@ -175,9 +191,9 @@ def test_incompatible_refinement_and_beat_note_fail_with_the_reason():
     )
     joint = np.column_stack([np.full(10, 3e17), np.linspace(1.0, 380.0, 10)])
     err = ps._support_error(
-        joint, refined, ("f_c_hz", "a_r"), [H_PRIORS["f_c_hz"], H_PRIORS["a_r"]], 10
+        joint, refined, ("f_c_hz", "a_r"), [H_PRIORS["f_c_hz"], H_PRIORS["a_r"]], 10, 10
     )
     assert isinstance(err, AnalysisError)
     msg = str(err)
     assert "f_c_hz: 100% of draws outside" in msg and "about the refinement's -0.918" in msg
-    assert "--refine" in msg
+    assert "--refine" in msg and "10 of 10 joint draws" in msg
