@@ -72,18 +72,21 @@ def test_simulated_noise_has_unit_variance_and_the_requested_spectrum():
     assert rho1 == pytest.approx(acov[1] / acov[0], abs=0.01)
 
 
+def _noise_residuals(colour, tau, n, rng):
+    """(fitted basis, RMS-normalised residuals) of b + B e + C t e fits of pure noise, t >= 4 us."""
+    basis = fitted_basis(4e-6 + DT * np.arange(n), tau)
+    noise = coloured_noise((tau.size, n), shaping_filter(colour, n, DT), rng)
+    resid = noise - np.einsum("rnc,rc->rn", basis, np.einsum("rnc,rn->rc", basis, noise))
+    return basis, resid / np.sqrt(np.mean(resid**2, axis=-1))[:, None]
+
+
 def test_projection_correction_recovers_the_low_frequency_power():
     # residuals of b + B e + C t e fits lack the noise along those slow directions; the
     # corrected spectrum must give the true kappa, the raw periodogram a far smaller one
     rng = np.random.default_rng(5)
     colour = NoiseColour("lowpass", f_hz=5e6, order=2)
-    n, rows = 4096, 120
-    t = 4e-6 + DT * np.arange(n)
-    tau = rng.uniform(4e-6, 30e-6, rows)
-    basis = fitted_basis(t, tau)
-    noise = coloured_noise((rows, n), shaping_filter(colour, n, DT), rng)
-    resid = noise - np.einsum("rnc,rc->rn", basis, np.einsum("rnc,rn->rc", basis, noise))
-    z = resid / np.sqrt(np.mean(resid**2, axis=-1))[:, None]
+    n = 4096
+    basis, z = _noise_residuals(colour, rng.uniform(4e-6, 30e-6, 120), n, rng)
     n_fft = 2 * n
     psd, band = noise_spectrum(z, basis, n_fft)
     j = profiled_tau_direction(basis)
@@ -129,12 +132,7 @@ def test_expected_periodogram_of_residuals_equals_the_dense_quadratic_form():
 def _residual_kappa(colour, rows, seed, n=4096):
     """(estimated, true) median kappa from the residuals of b + B e + C t e fits of pure noise."""
     rng = np.random.default_rng(seed)
-    t = 4e-6 + DT * np.arange(n)
-    tau = rng.uniform(3e-6, 12e-6, rows)
-    basis = fitted_basis(t, tau)
-    noise = coloured_noise((rows, n), shaping_filter(colour, n, DT), rng)
-    resid = noise - np.einsum("rnc,rc->rn", basis, np.einsum("rnc,rn->rc", basis, noise))
-    z = resid / np.sqrt(np.mean(resid**2, axis=-1))[:, None]
+    basis, z = _noise_residuals(colour, rng.uniform(3e-6, 12e-6, rows), n, rng)
     psd, band = noise_spectrum(z, basis, 2 * n)
     j = profiled_tau_direction(basis)
     true = colour_factors(_psd_on_grid(colour, 2 * n), j)
