@@ -234,7 +234,7 @@ class LowBand:
         return (1.0 - w) * self.flat + w * (self.level + self.flicker * f**-self.alpha)
 
 
-def expected_periodogram(psd: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def expected_periodogram(psd: np.ndarray, basis: np.ndarray, qf=None) -> np.ndarray:
     """E[:func:`pooled_periodogram`] of fit residuals (I - Q Q') x, x noise with PSD ``psd``.
 
     ``psd`` on the rfft grid of n_fft >= 2n (its autocovariance c = irfft(psd) is the model's:
@@ -246,7 +246,8 @@ def expected_periodogram(psd: np.ndarray, basis: np.ndarray) -> np.ndarray:
     exactly, whatever the PSD's shape: the share 1 - sum_c |Q_c(f)|^2 / n that a flat PSD
     keeps is the special case C = I. Where the PSD is steep across the fitted directions'
     narrow spectrum (flicker noise with a knee near the decay's bandwidth) that share is wrong,
-    and kappa with it; this expectation is what the low band is fitted through.
+    and kappa with it; this expectation is what the low band is fitted through. ``qf`` is
+    rfft(basis, n_fft, axis=1) when the caller has it (one per basis, whatever the PSD).
     """
     n_fft = 2 * (psd.size - 1)
     rows, n, _ = basis.shape
@@ -254,7 +255,7 @@ def expected_periodogram(psd: np.ndarray, basis: np.ndarray) -> np.ndarray:
     lag = np.minimum(np.arange(n_fft), n_fft - np.arange(n_fft))
     tri = np.where(lag < n, (n - lag) * c, 0.0)  # sum_k (n - |k|) c(k) e^{-i w k}
     direct = np.fft.rfft(tri).real
-    qf = np.fft.rfft(basis, n_fft, axis=1)  # (rows, nf, 3)
+    qf = np.fft.rfft(basis, n_fft, axis=1) if qf is None else qf  # (rows, nf, 3)
     cq = np.fft.irfft(psd[None, :, None] * qf, n_fft, axis=1)[:, :n, :]  # C Q
     cqf = np.fft.rfft(cq, n_fft, axis=1)
     cross = np.sum(qf.real * cqf.real + qf.imag * cqf.imag, axis=-1)
@@ -277,7 +278,12 @@ def _weighted_nnls(g: np.ndarray, y: np.ndarray, sd: np.ndarray) -> tuple[np.nda
 
 
 def low_band(
-    pgram: np.ndarray, kept: np.ndarray, basis: np.ndarray, high: np.ndarray, n_rows: int
+    pgram: np.ndarray,
+    kept: np.ndarray,
+    basis: np.ndarray,
+    high: np.ndarray,
+    n_rows: int,
+    qf=None,
 ) -> LowBand:
     """Fit S(f) = a and S(f) = a + b (f_1/f)^alpha on bins 0..L to the raw low periodogram.
 
@@ -289,12 +295,13 @@ def low_band(
     not divided by a share that holds for flat spectra only.
     Each bin's variance is 2 E^2 / n_rows (a pooled periodogram; neighbours of the padded grid
     correlated), E the flat model's expectation. alpha is chosen from :data:`FLICKER_ALPHAS`,
-    a and b >= 0.
+    a and b >= 0. ``qf`` is rfft(basis, n_fft, axis=1) when the caller has it.
     """
     n_fft = 2 * (pgram.size - 1)
     n_low = min(LOW_BINS, pgram.size - 2)
-    g_flat = expected_periodogram(_band_shapes(n_fft, n_low, None), basis)
-    g_high = expected_periodogram(high, basis)
+    qf = np.fft.rfft(basis, n_fft, axis=1) if qf is None else qf
+    g_flat = expected_periodogram(_band_shapes(n_fft, n_low, None), basis, qf)
+    g_high = expected_periodogram(high, basis, qf)
     bins = np.arange(1, n_low + 1)
     bins = bins[kept[bins] >= MIN_KEPT]
     if bins.size < MIN_LOW_BINS:
@@ -317,7 +324,7 @@ def low_band(
     best = (chi2_flat, flat, 0.0, 1.0)
     for alpha in FLICKER_ALPHAS:
         g = np.column_stack(
-            [gf[:, 0], expected_periodogram(_band_shapes(n_fft, n_low, alpha), basis)[bins]]
+            [gf[:, 0], expected_periodogram(_band_shapes(n_fft, n_low, alpha), basis, qf)[bins]]
         )
         coef, chi2 = _weighted_nnls(g, y, sd)
         if chi2 < best[0]:
@@ -366,7 +373,7 @@ def noise_spectrum(z: np.ndarray, basis: np.ndarray, n_fft: int, pgram=None) -> 
     low = np.arange(0, min(LOW_BINS, psd.size - 2) + 1)
     high = psd.copy()
     high[low] = 0.0
-    band = low_band(pgram, kept, basis[some], high, z.shape[0])
+    band = low_band(pgram, kept, basis[some], high, z.shape[0], qf)
     psd[low] = band.psd(low)
     return psd, band
 
