@@ -463,7 +463,7 @@ def _support_error(joint, refined, names, priors, pool: int, outside: int) -> An
     lines = []
     for k, (n, p) in enumerate(zip(names, priors)):
         col = d[:, k]
-        bad = ~np.isfinite(col) | (col <= p.lower) | (col >= p.upper)
+        bad = outside_priors([p], {p.parameter: col})
         if n in refined.free and bad.any():
             lines.append(
                 f"{n}: {bad.mean():.0%} of draws outside ({p.lower:g}, {p.upper:g}) {p.unit}"
