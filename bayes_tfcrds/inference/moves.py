@@ -1,4 +1,11 @@
-"""Sampler moves beyond emcee's own: a mode-jumping independence proposal.
+"""Sampler moves beyond emcee's own: vectorised differential evolution, mode jumps.
+
+Not used, on purpose: emcee 3.1.6's ``DESnookerMove``. It does not leave the target invariant:
+it scales the projected step by |x - z| (``u = delta / sqrt(|delta|)`` where a unit vector is
+meant) and weights the Jacobian by (d - 1)/2 where the snooker update of ter Braak & Vrugt
+(2008) needs d - 1 (fixed upstream after 3.1.6 in dfm/emcee#531, not released). On an
+8-dimensional unit normal it samples a variance of 0.65 alone and 0.90 in an 80/20 mixture with
+``DEMove`` (tests/inference/test_moves.py), so a posterior sampled with it is too narrow.
 
 An affine-invariant ensemble explores one basin well and crosses between separated basins
 almost never: a walker started (or wandered) into a minor mode stays there, and R-hat between
@@ -105,3 +112,46 @@ def mode_jump_move(proposal: MixtureProposal):
         return new, proposal.log_density(coords) - proposal.log_density(new)
 
     return emcee.moves.MHMove(propose, ndim=proposal.ndim)
+
+
+def differential_evolution_move(gamma0: float | None = None, sigma: float = 1.0e-5):
+    """Differential evolution (ter Braak 2006) as emcee's ``DEMove``, each half in one array step.
+
+    The ensemble is split at random into two halves; each walker x of one half proposes
+    x' = x + gamma (z1 - z2), (z1, z2) a random ordered pair of distinct walkers of the other half
+    and gamma = gamma0 (1 + sigma N(0, 1)), gamma0 = 2.38/sqrt(2 d) (Nelson et al. 2014, ApJS
+    210, 11): a symmetric proposal given the other half, accepted with probability
+    min(1, p(x')/p(x)). This is emcee 3.1.6's ``DEMove`` (its proposal, split and acceptance
+    rule; its random numbers are drawn in another order), with the pair drawn without a table of
+    all n(n - 1) pairs and the acceptance decided for the whole half at once instead of walker by
+    walker: the same chain law at a fraction of the Python cost per step, which is most of a step
+    on a cheap posterior.
+    """
+    import emcee
+
+    class _DEMove(emcee.moves.Move):
+        def propose(self, model, state):
+            nw, d = state.coords.shape
+            g0 = 2.38 / np.sqrt(2.0 * d) if gamma0 is None else gamma0
+            random = model.random
+            half = np.arange(nw) % 2
+            random.shuffle(half)
+            accepted = np.zeros(nw, dtype=bool)
+            for split in (0, 1):
+                active = half == split
+                s, c = state.coords[active], state.coords[~active]
+                ns, nc = s.shape[0], c.shape[0]
+                i = random.randint(nc, size=ns)
+                j = random.randint(nc - 1, size=ns)
+                j += j >= i  # a partner distinct from i, uniform over the others
+                gamma = g0 * (1.0 + sigma * random.randn(ns, 1))
+                q = s + gamma * (c[j] - c[i])
+                new_lp, new_blobs = model.compute_log_prob_fn(q)
+                acc = np.zeros(nw, dtype=bool)
+                acc[active] = new_lp - state.log_prob[active] > np.log(random.rand(ns))
+                accepted |= acc
+                new = emcee.State(q, log_prob=new_lp, blobs=new_blobs)
+                state = self.update(state, new, acc, active)
+            return state, accepted
+
+    return _DEMove()

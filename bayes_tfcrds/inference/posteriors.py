@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from fractions import Fraction
+from functools import cached_property
 
 import numpy as np
 
@@ -264,9 +265,28 @@ class LinePosterior:
         if any(p.is_log for p in self.priors):
             raise ValueError("the line posterior samples its parameters as they are (uniform)")
 
+    @cached_property
+    def _support(self) -> tuple:
+        """The priors as arrays: (lower (d,), upper (d,), caps ((i, j, factor), ...))."""
+        pri = self.priors
+        caps = tuple(
+            (i, self.names.index(p.cap[0]), p.cap[1])
+            for i, p in enumerate(pri)
+            if p.cap and p.cap[0] in self.names
+        )
+        return np.array([p.lower for p in pri]), np.array([p.upper for p in pri]), caps
+
+    def outside(self, x) -> np.ndarray:
+        """:func:`outside_priors` of samples x (n, d), on the priors' arrays (one array step)."""
+        lower, upper, caps = self._support
+        bad = ~np.isfinite(x).all(axis=1) | (x <= lower).any(axis=1) | (x >= upper).any(axis=1)
+        for i, j, factor in caps:
+            bad |= x[:, i] >= factor * x[:, j]
+        return bad
+
     def __call__(self, x):
         x = np.atleast_2d(np.asarray(x, float))
-        bad = outside_priors(self.priors, dict(zip(self.names, x.T)))
+        bad = self.outside(x)
         lp = np.where(bad, -np.inf, 0.0)
         ok = ~bad
         if not ok.any():

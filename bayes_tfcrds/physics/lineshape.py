@@ -134,18 +134,25 @@ def _w_of_i_over_u(u):
     up to the Maxwell weight ~ exp(-(Gamma0 + nu_VC)/|Gamma2|) of speed classes whose
     width Gamma(v) + nu_VC would be negative, see ``qsdhcp``.)
     """
-    out = np.empty_like(u)
     series = np.abs(u) < _WPLUS_SERIES_U
-    if np.any(series):
-        us = u[series]
-        u2 = us * us
-        out[series] = us / _SQRT_PI * (1.0 + u2 * (-0.5 + u2 * (0.75 - 1.875 * u2)))
+    if not series.any():  # the common case: no masking, no copies
+        return _w_right_branch(1j / u)
+    out = np.empty_like(u)
+    us = u[series]
+    u2 = us * us
+    out[series] = us / _SQRT_PI * (1.0 + u2 * (-0.5 + u2 * (0.75 - 1.875 * u2)))
     rest = ~series
     if np.any(rest):
-        z = 1j / u[rest]  # i Z+; Im z = Re Z+
-        left = z.imag < 0
-        out[rest] = np.where(left, -wofz(np.where(left, -z, 0.0)), wofz(np.where(left, 0.0, z)))
+        out[rest] = _w_right_branch(1j / u[rest])  # i Z+; Im z = Re Z+
     return out
+
+
+def _w_right_branch(z):
+    """w(z) where Im z >= 0 and -w(-z) where Im z < 0 (the speed integral's branch)."""
+    left = z.imag < 0
+    if not left.any():
+        return wofz(z)
+    return np.where(left, -wofz(np.where(left, -z, 0.0)), wofz(np.where(left, 0.0, z)))
 
 
 def _speed_averaged(z0, kappa):
@@ -173,10 +180,14 @@ def _speed_averaged(z0, kappa):
     of Tran et al. is used: a = (2/kappa) * (1 - sqrt(pi) R w(iR)), R = s/(2 kappa), with the
     bracket from its asymptotic series for large |R| (the Lorentzian far-wing limit).
     """
-    a = np.empty_like(z0)
     p = 4.0 * kappa * z0
     s = np.sqrt(1.0 + p)
     far = np.abs(p) > _XY_RATIO_SWITCH
+    if not far.any():  # the common case: no masking, no copies
+        zm = 2.0 * z0 / (1.0 + s)
+        return _SQRT_PI * (wofz(1j * zm) - _w_of_i_over_u(kappa / (1.0 + kappa * zm)))
+    a = np.empty_like(z0)
+    kappa = np.broadcast_to(kappa, z0.shape)
     near = ~far
     if np.any(near):
         zn, kn, sn = z0[near], kappa[near], s[near]
@@ -225,24 +236,36 @@ def qsdhcp(
     is defined for Delta2 = 0 and 4 ln2 |Gamma2| Re C0~ < GammaD^2, where it is finite at
     every detuning; elsewhere it is NaN.
     """
-    shape, (nu, nu0, gd, g0, g2, d0, d2, nvc) = _flat_broadcast(
-        nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz, nu_vc_hz
-    )
+    # the parameters keep their own shapes (one value per walker, say) and broadcast against the
+    # frequencies only where a quantity depends on both: a sampler's call then does the
+    # per-parameter arithmetic once per parameter set, not once per frequency
+    nu, nu0, gd, g0, g2, d0, d2, nvc = (
+        np.asarray(x, dtype=float)
+        for x in (
+            nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz, nu_vc_hz
+        )
+    )  # fmt: skip
     _check_doppler(gd)
     cte = _SQRT_LN2 / gd  # 1/Hz
     c0t = (g0 - 1.5 * g2 + nvc) + 1j * (d0 - 1.5 * d2)  # Hz
-    z0 = cte * (c0t - 1j * (nu - nu0))
+    z0 = np.asarray(cte * (c0t - 1j * (nu - nu0)))  # every input's broadcast shape
     kappa = cte * (g2 + 1j * d2)
     # Gamma2 < 0 with Delta2 = 0: as nu varies, 1 + 4 kappa z0 runs parallel to the real axis
     # at Re = 1 + 4 kappa cte Re C0~; at or below 0 sqrt(1 + 4 kappa z0) jumps on its branch
     # cut and the continuation is undefined. With Delta2 != 0, w(iZ-) leaves the upper half
     # plane far out and overflows: not covered. NaN in both cases, never a wrong number.
     inside = ~((g2 < 0) & ((d2 != 0) | (1.0 + 4.0 * cte * cte * g2 * c0t.real <= 0)))
-    a = np.full_like(z0, np.nan)
-    a[inside] = cte[inside] * _speed_averaged(z0[inside], kappa[inside])  # A, 1/Hz
+    if np.all(inside):
+        a = cte * _speed_averaged(z0, kappa)  # A, 1/Hz
+    else:
+        inside = np.broadcast_to(inside, z0.shape)
+        a = np.full_like(z0, np.nan)
+        a[inside] = np.broadcast_to(cte, z0.shape)[inside] * _speed_averaged(
+            z0[inside], np.broadcast_to(kappa, z0.shape)[inside]
+        )
     with np.errstate(invalid="ignore"):
         g = a / (np.pi * (1.0 - nvc * a))
-    return g.reshape(shape)
+    return np.asarray(g)
 
 
 # |u| = |kappa/(1 + kappa Z-)| below which T(u) (see ``_htp_remainder``) is summed from its

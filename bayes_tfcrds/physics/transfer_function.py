@@ -116,7 +116,10 @@ def transfer_function_array(
     h = lowpass + a_r / denom
     if normalise:
         h = h / (1.0 + a_r)
-    return np.where(f < 0, np.conj(h), h)
+    negative = f < 0
+    if not negative.any():  # rfft grids and beat notes: no conjugate copy of a large array
+        return np.asarray(h)
+    return np.where(negative, np.conj(h), h)
 
 
 def transfer_function_derivatives(f_hz, params: TFParams, names, rel_step: float = 1e-6):

@@ -1344,6 +1344,9 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
     instrument_job = side.submit(
         instrument_rows, config, options, h_star, dt.spec, inp.gd, inp.nu_ref
     )  # 6c.
+    form_job = (
+        side.submit(_h_model_form, inp, dt, forms, beat_2, refined, "n_r" in names) if tf else None
+    )  # 6b.
     tau_job = side.submit(_tau_table, inp, dt, h_star, h_draws, names)  # 11.
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     clock.done("line posterior")
@@ -1374,7 +1377,7 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
     clock.done("A_ref from CMDS")
     form = None
     if tf:  # 6b. the form of the H model
-        form_row, form = _h_model_form(inp, dt, forms, beat_2, refined, "n_r" in names)
+        form_row, form = form_job.result()
         h_rows = (h_rows[0] + [form_row], h_rows[1])
         clock.done("H model form")
     instrument = instrument_job.result()  # 6c.
