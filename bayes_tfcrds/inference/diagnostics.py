@@ -2,8 +2,9 @@
 
 Every Bayesian result in the toolkit is sampled through :func:`run_ensembles`. It runs
 ``n_ensembles`` (>= 4) *independent* emcee ensembles, because the walkers of one ensemble
-are coupled by the stretch move and are not independent chains; a convergence check
-needs chains that could have disagreed.
+are coupled by the ensemble moves and are not independent chains; a convergence check
+needs chains that could have disagreed. The ensembles step together in one emcee sampler
+whose moves never use another ensemble's walkers (``inference.moves.ensemble_local``).
 
 Diagnostics (per parameter and per derived quantity, :func:`chain_diagnostics`)
     All are arviz's, computed on the layout the netCDF files store (:func:`draw_layout`), so
@@ -49,17 +50,18 @@ biased by the initial transient; the ``n // 2`` cap keeps something to diagnose 
 whose burn-in hits the cap fails the tau gate anyway).
 
 Determinism and resume
-    Each ensemble gets two child seeds from ``rng.spawn``: one generator for ``p0_fn`` and
-    one MT19937 ``RandomState`` that is installed as the sampler's generator (emcee 3.1
-    has no ``seed=`` argument and would otherwise start from the global ``np.random``
-    state). Sampling proceeds in chunks of ``chunk_steps``; after every chunk the
-    positions, log-probabilities, per-step acceptances *and* the generator state are
-    committed together. The random stream is continuous across chunks (emcee draws no
-    random numbers when a run starts from a state with known log-probabilities), so the
-    chain does not depend on where chunks, extensions or interruptions fall: a run that
-    is interrupted (KeyboardInterrupt, SIGKILL) and rerun with the same arguments is bit
-    for bit the uninterrupted run. Ctrl-C while sampling commits the steps already taken
-    and then raises KeyboardInterrupt (a second Ctrl-C stops at once).
+    Each ensemble gets two child seeds from ``rng.spawn``: one generator for ``p0_fn`` and one
+    stream; the first ensemble's stream, an MT19937 ``RandomState``, is installed as the
+    sampler's generator (emcee 3.1 has no ``seed=`` argument and would otherwise start from the
+    global ``np.random`` state). Sampling proceeds in chunks of ``chunk_steps``; after every
+    chunk each ensemble's positions, log-probabilities, per-step acceptances *and* the
+    generator state are committed together (the ensembles one after another; a kill between
+    them is rolled back on resume to the step all of them hold). The random stream is
+    continuous across chunks (emcee draws no random numbers when a run starts from a state with
+    known log-probabilities), so the chain does not depend on where chunks, extensions or
+    interruptions fall: a run that is interrupted (KeyboardInterrupt, SIGKILL) and rerun with
+    the same arguments is bit for bit the uninterrupted run. Ctrl-C while sampling commits the
+    steps already taken and then raises KeyboardInterrupt (a second Ctrl-C stops at once).
 
     With ``backend_path`` the commits go to an HDF5 file in emcee's ``HDFBackend`` layout
     (group ``ensemble{i}``: ``chain``, ``log_prob``, ``accepted``, attrs ``iteration`` and

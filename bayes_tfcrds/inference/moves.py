@@ -114,44 +114,87 @@ def mode_jump_move(proposal: MixtureProposal):
     return emcee.moves.MHMove(propose, ndim=proposal.ndim)
 
 
-def differential_evolution_move(gamma0: float | None = None, sigma: float = 1.0e-5):
-    """Differential evolution (ter Braak 2006) as emcee's ``DEMove``, each half in one array step.
+def _move_base():
+    import emcee
 
-    The ensemble is split at random into two halves; each walker x of one half proposes
+    return emcee.moves.Move
+
+
+class DifferentialEvolutionMove(_move_base()):
+    """Differential evolution (ter Braak 2006) within each of ``n_groups`` independent ensembles.
+
+    The sampler's walkers are ``n_groups`` ensembles of equal size, stored one after the other.
+    Each ensemble is split at random into two halves; every walker x of one half proposes
     x' = x + gamma (z1 - z2), (z1, z2) a random ordered pair of distinct walkers of the other half
-    and gamma = gamma0 (1 + sigma N(0, 1)), gamma0 = 2.38/sqrt(2 d) (Nelson et al. 2014, ApJS
-    210, 11): a symmetric proposal given the other half, accepted with probability
-    min(1, p(x')/p(x)). This is emcee 3.1.6's ``DEMove`` (its proposal, split and acceptance
-    rule; its random numbers are drawn in another order), with the pair drawn without a table of
-    all n(n - 1) pairs and the acceptance decided for the whole half at once instead of walker by
-    walker: the same chain law at a fraction of the Python cost per step, which is most of a step
-    on a cheap posterior.
+    *of its own ensemble*, gamma = gamma0 (1 + sigma N(0, 1)), gamma0 = 2.38/sqrt(2 d) (Nelson et
+    al. 2014, ApJS 210, 11). Given the other half the proposal is symmetric, so it is accepted
+    with probability min(1, p(x')/p(x)). For one group this is emcee 3.1.6's ``DEMove`` (its
+    proposal, split and acceptance rule; its random numbers drawn in another order). No walker
+    ever uses another ensemble's, so the ensembles stay independent chains for R-hat, while the
+    proposals of all of them are evaluated in one call of the posterior and accepted in one
+    array step: the Python cost of a step is paid once for all ensembles instead of once each.
+    """
+
+    def __init__(self, gamma0: float | None = None, sigma: float = 1.0e-5, n_groups: int = 1):
+        self.gamma0, self.sigma, self.n_groups = gamma0, float(sigma), int(n_groups)
+
+    def for_groups(self, n_groups: int) -> DifferentialEvolutionMove:
+        """The same move acting within each of ``n_groups`` ensembles."""
+        return DifferentialEvolutionMove(self.gamma0, self.sigma, n_groups)
+
+    def propose(self, model, state):
+        import emcee
+
+        n, d = state.coords.shape
+        n_groups = self.n_groups
+        width = n // n_groups
+        if width * n_groups != n or width < 4:
+            raise ValueError(f"{n} walkers do not make {n_groups} ensembles of at least 4 walkers")
+        g0 = 2.38 / np.sqrt(2.0 * d) if self.gamma0 is None else self.gamma0
+        random = model.random
+        base = (np.arange(n_groups) * width)[:, None]
+        order = np.argsort(random.rand(n_groups, width), axis=1)  # each group's random halves
+        accepted = np.zeros(n, dtype=bool)
+        for split in (0, 1):
+            active = base + np.sort(order[:, split::2], axis=1)  # (groups, n_s), ascending
+            other = base + order[:, 1 - split :: 2]  # (groups, n_c)
+            n_s, n_c = active.shape[1], other.shape[1]
+            i = random.randint(n_c, size=(n_groups, n_s))
+            j = random.randint(n_c - 1, size=(n_groups, n_s))
+            j += j >= i  # a partner distinct from i, uniform over the others
+            z1 = state.coords[np.take_along_axis(other, i, axis=1)]
+            z2 = state.coords[np.take_along_axis(other, j, axis=1)]
+            gamma = g0 * (1.0 + self.sigma * random.randn(n_groups, n_s, 1))
+            rows = active.ravel()
+            q = (state.coords[active] + gamma * (z1 - z2)).reshape(-1, d)
+            new_lp, new_blobs = model.compute_log_prob_fn(q)
+            subset = np.zeros(n, dtype=bool)
+            subset[rows] = True
+            acc = np.zeros(n, dtype=bool)
+            acc[rows] = new_lp - state.log_prob[rows] > np.log(random.rand(rows.size))
+            accepted |= acc
+            new = emcee.State(q, log_prob=new_lp, blobs=new_blobs)
+            state = self.update(state, new, acc, subset)
+        return state, accepted
+
+
+def ensemble_local(moves, n_groups: int) -> list:
+    """``moves`` ((move, weight) pairs) made to act within each of ``n_groups`` ensembles.
+
+    A move with ``for_groups`` is told the groups; an ``MHMove`` (each walker proposes on its
+    own, as :func:`mode_jump_move` does) needs nothing. Any other move (emcee's stretch,
+    DEMove, ...) draws on walkers of other ensembles and would couple them: refused.
     """
     import emcee
 
-    class _DEMove(emcee.moves.Move):
-        def propose(self, model, state):
-            nw, d = state.coords.shape
-            g0 = 2.38 / np.sqrt(2.0 * d) if gamma0 is None else gamma0
-            random = model.random
-            half = np.arange(nw) % 2
-            random.shuffle(half)
-            accepted = np.zeros(nw, dtype=bool)
-            for split in (0, 1):
-                active = half == split
-                s, c = state.coords[active], state.coords[~active]
-                ns, nc = s.shape[0], c.shape[0]
-                i = random.randint(nc, size=ns)
-                j = random.randint(nc - 1, size=ns)
-                j += j >= i  # a partner distinct from i, uniform over the others
-                gamma = g0 * (1.0 + sigma * random.randn(ns, 1))
-                q = s + gamma * (c[j] - c[i])
-                new_lp, new_blobs = model.compute_log_prob_fn(q)
-                acc = np.zeros(nw, dtype=bool)
-                acc[active] = new_lp - state.log_prob[active] > np.log(random.rand(ns))
-                accepted |= acc
-                new = emcee.State(q, log_prob=new_lp, blobs=new_blobs)
-                state = self.update(state, new, acc, active)
-            return state, accepted
-
-    return _DEMove()
+    out = []
+    for move, weight in moves:
+        if hasattr(move, "for_groups"):
+            move = move.for_groups(n_groups)
+        elif not isinstance(move, emcee.moves.MHMove):
+            raise ValueError(
+                f"{type(move).__name__} draws on other walkers and would couple the independent "
+                "ensembles; use DifferentialEvolutionMove or an MHMove"
+            )
+        out.append((move, float(weight)))
+    return out

@@ -1,4 +1,4 @@
-"""The sampler runner: independent emcee ensembles extended until every gate passes."""
+"""The sampler runner: independent emcee ensembles stepped together until every gate passes."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ import emcee
 import numpy as np
 
 from bayes_tfcrds.inference.diagnostics import Gates, _gate_failures, burn_in, chain_diagnostics
+from bayes_tfcrds.inference.moves import DifferentialEvolutionMove, ensemble_local
 from bayes_tfcrds.inference.posteriors import sample_names
 from bayes_tfcrds.inference.result import SamplingResult, _frozen, parameter_values
 from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _same_rng_state, _StepRecorder
@@ -21,31 +22,31 @@ from bayes_tfcrds.output.progress import progress_bar
 log = logging.getLogger(__name__)
 
 
-class _Ensemble:
-    """One emcee ensemble advanced in committed chunks with a continuous random stream."""
+class _Lockstep:
+    """The ensembles advanced together, committed in chunks with one continuous random stream.
+
+    One emcee sampler holds every ensemble's walkers, one ensemble after the other, and its
+    moves act within each ensemble (:func:`bayes_tfcrds.inference.moves.ensemble_local`), so the
+    ensembles stay independent chains; their proposals go to the posterior in one call per half
+    step, which is what makes a step cheap. Each ensemble has its own store (its own HDF5 group);
+    every commit writes all of them with the sampler's generator state.
+    """
 
     def __init__(
-        self,
-        index,
-        seed,
-        log_prob,
-        p0_fn,
-        n_walkers,
-        ndim,
-        vectorize,
-        pool,
-        backend_path,
-        chunk_steps,
-        moves=None,
-    ):
-        init_rng, mcmc_rng = seed.spawn(2)
-        ss = mcmc_rng.bit_generator.seed_seq
-        fingerprint = json.dumps([str(ss.entropy), list(map(int, ss.spawn_key)), n_walkers, ndim])
-        self.index, self.chunk_steps = index, chunk_steps
-        self._p0 = lambda: p0_fn(init_rng, n_walkers)  # only needed for a fresh start
+        self, seeds, log_prob, p0_fn, n_walkers, ndim, vectorize, pool, backend_path, chunk_steps,
+        moves,
+    ):  # fmt: skip
+        self.n_walkers, self.chunk_steps = n_walkers, chunk_steps
+        pairs = [s.spawn(2) for s in seeds]  # (starts, stream) per ensemble
+        self._p0 = [
+            (lambda r=init: p0_fn(r, n_walkers)) for init, _ in pairs
+        ]  # only needed for a fresh start
+        # the sampler's one stream is the first ensemble's (every commit stores it with each)
+        ss = pairs[0][1].bit_generator.seed_seq
         self.rng0 = np.random.RandomState(np.random.MT19937(ss)).get_state()
+        n_ens = len(seeds)
         self.sampler = emcee.EnsembleSampler(
-            n_walkers,
+            n_ens * n_walkers,
             ndim,
             log_prob,
             pool=pool,
@@ -53,61 +54,88 @@ class _Ensemble:
             vectorize=vectorize,
             backend=_StepRecorder(),
         )
-        self.store = (
-            _MemoryStore(n_walkers, ndim, fingerprint)
-            if backend_path is None
-            else _HDFStore(backend_path, f"ensemble{index}", n_walkers, ndim, fingerprint)
-        )
+        self.stores = []
+        for index, (_, stream) in enumerate(pairs):
+            sq = stream.bit_generator.seed_seq
+            fingerprint = json.dumps(
+                [str(sq.entropy), list(map(int, sq.spawn_key)), n_walkers, ndim, "lockstep", n_ens]
+            )
+            self.stores.append(
+                _MemoryStore(n_walkers, ndim, fingerprint)
+                if backend_path is None
+                else _HDFStore(backend_path, f"ensemble{index}", n_walkers, ndim, fingerprint)
+            )
         self.state = None
 
+    @property
+    def iteration(self) -> int:
+        return min(st.iteration for st in self.stores)
+
     def _initial_state(self):
-        if self.store.iteration > 0:
-            coords, lp, rs = self.store.last()
-            return emcee.State(np.array(coords), log_prob=np.array(lp), random_state=rs)
-        p0 = np.array(self._p0(), dtype=float)
+        n = self.iteration
+        for st in self.stores:  # a kill between the groups' writes of one commit: roll back
+            if st.iteration > n:
+                st.rollback(n)
+        if n > 0:
+            parts = [st.last() for st in self.stores]
+            coords = np.concatenate([np.array(p[0]) for p in parts])
+            lp = np.concatenate([np.array(p[1]) for p in parts])
+            return emcee.State(coords, log_prob=lp, random_state=parts[0][2])
+        p0 = np.concatenate([np.array(f(), dtype=float) for f in self._p0])
         shape = (self.sampler.nwalkers, self.sampler.ndim)
         if p0.shape != shape:
-            raise ValueError(f"p0_fn returned shape {p0.shape}, need {shape}")
+            raise ValueError(
+                f"p0_fn returned shape {p0.shape[0] // len(self.stores), p0.shape[1]}, need "
+                f"{(self.n_walkers, self.sampler.ndim)}"
+            )
         lp, _ = self.sampler.compute_log_prob(p0)
         if not np.all(np.isfinite(lp)):
+            bad = np.nonzero(~np.isfinite(lp))[0] // self.n_walkers
             raise ValueError(
-                f"ensemble {self.index}: p0_fn returned walkers with non-finite log_prob "
+                f"ensemble {int(bad[0])}: p0_fn returned walkers with non-finite log_prob "
                 f"{lp[~np.isfinite(lp)]} (outside the prior?)"
             )
         return emcee.State(p0, log_prob=lp, random_state=self.rng0)
 
-    def advance_to(self, n_total, pbar=None, stop=None):
-        """Run until the committed chain holds ``n_total`` steps (no-op if it already does).
+    def advance_to(self, n_total, bars=(), stop=None):
+        """Run until every committed chain holds ``n_total`` steps (no-op if they already do).
 
         On a ``stop`` request commit the steps taken so far and raise KeyboardInterrupt.
         """
-        while self.store.iteration < n_total:
+        while self.iteration < n_total:
             if self.state is None:
                 self.state = self._initial_state()
             self.sampler.random_state = self.state.random_state
             if not _same_rng_state(self.sampler.random_state, self.state.random_state):
                 raise RuntimeError("could not restore the sampler's random state")
-            k = min(self.chunk_steps, n_total - self.store.iteration)
+            k = min(self.chunk_steps, n_total - self.iteration)
             rec = self.sampler.backend
             rec.reset(self.sampler.nwalkers, self.sampler.ndim)
             for st in self.sampler.sample(  # noqa: B007 - st is read after the loop
                 self.state,
                 iterations=k,
                 store=True,
-                skip_initial_state_check=self.store.iteration > 0,
+                skip_initial_state_check=self.iteration > 0,
             ):
-                if pbar is not None:
-                    pbar.update(1)
+                for bar in bars:
+                    bar.update(1)
                 if stop is not None and stop.requested:
                     break  # the chain does not depend on where chunks end
             rs = self.sampler.random_state
-            self.store.append(rec.get_chain(), rec.get_log_prob(), np.array(rec.accepted_steps), rs)
+            chain, lp = rec.get_chain(), rec.get_log_prob()
+            acc = np.array(rec.accepted_steps)
+            w = self.n_walkers
+            for e, store in enumerate(self.stores):
+                cols = slice(e * w, (e + 1) * w)
+                store.append(chain[:, cols], lp[:, cols], acc[:, cols], rs)
             self.state = emcee.State(st.coords.copy(), log_prob=st.log_prob.copy(), random_state=rs)
             if stop is not None and stop.requested:
                 raise KeyboardInterrupt
 
     def read(self, n):
-        return self.store.read(n)
+        """(chains, log_probs, accepted) of the first ``n`` steps, ensembles stacked first."""
+        parts = [st.read(n) for st in self.stores]
+        return tuple(np.stack(p) for p in zip(*parts))
 
 
 class _StopRequest:
@@ -258,6 +286,9 @@ def run_ensembles(
     progress: one bar per ensemble, labelled with ``label`` (periodic log lines when stderr is
         not a terminal: :func:`bayes_tfcrds.output.progress.progress_bar`).
     pool: object with ``map`` passed to emcee (ignored by emcee when ``vectorize``).
+    moves: emcee (move, weight) pairs that keep to each ensemble (see
+        :func:`bayes_tfcrds.inference.moves.ensemble_local`); default differential evolution.
+        All ensembles step together in one sampler: one posterior call per half step for all.
     derived_fn: ``samples (n, ndim) -> {name: (n,) array}``; derived quantities get the
         same diagnostics and gates as the parameters.
     chunk_steps: steps between commits; the chains do not depend on it.
@@ -285,46 +316,43 @@ def run_ensembles(
     if priors and sample_names(priors) != names:
         raise ValueError(f"priors sample {sample_names(priors)}, not the names {names}")
 
-    ensembles = [
-        _Ensemble(
-            i,
-            s,
-            log_prob,
-            p0_fn,
-            n_walkers,
-            ndim,
-            vectorize,
-            pool,
-            backend_path,
-            moves=moves,
-            chunk_steps=int(chunk_steps),
-        )
-        for i, s in enumerate(rng.spawn(n_ensembles))
-    ]
+    moves = ensemble_local(
+        moves if moves is not None else [(DifferentialEvolutionMove(), 1.0)], n_ensembles
+    )
+    lock = _Lockstep(
+        rng.spawn(n_ensembles),
+        log_prob,
+        p0_fn,
+        n_walkers,
+        ndim,
+        vectorize,
+        pool,
+        backend_path,
+        int(chunk_steps),
+        moves,
+    )
     bars = []
     if progress:
         prefix = f"{label} " if label else ""
         bars = [
             progress_bar(
                 total=n_steps,
-                initial=min(e.store.iteration, n_steps),
-                desc=f"{prefix}ensemble {e.index}",
-                position=e.index,
+                initial=min(st.iteration, n_steps),
+                desc=f"{prefix}ensemble {e}",
+                position=e,
             )
-            for e in ensembles
+            for e, st in enumerate(lock.stores)
         ]
     stop = _StopRequest()
     try:
         stop.__enter__()
         target = int(n_steps)
         while True:
-            for i, e in enumerate(ensembles):
-                if bars:
-                    bars[i].total = target
-                    bars[i].refresh()
-                e.advance_to(target, bars[i] if bars else None, stop)
-            parts = [e.read(target) for e in ensembles]
-            chains, lps, acc = (np.stack(p) for p in zip(*parts))
+            for bar in bars:
+                bar.total = target
+                bar.refresh()
+            lock.advance_to(target, bars, stop)
+            chains, lps, acc = lock.read(target)
             result = _evaluate(
                 names, chains, lps, acc, derived_fn, gates, label, tuple(priors), units
             )

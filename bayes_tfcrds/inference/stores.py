@@ -47,6 +47,10 @@ class _MemoryStore:
         chain, lp, _ = self._chunks[-1]
         return chain[-1], lp[-1], self._rng
 
+    def rollback(self, n):
+        """Only a chain file can be rolled back (an in-memory run never resumes)."""
+        raise RuntimeError(f"in-memory chains at step {self.iteration} cannot go back to {n}")
+
     def read(self, n):
         parts = [np.concatenate(p)[:n] for p in zip(*self._chunks)]
         return tuple(parts)
@@ -197,6 +201,29 @@ class _HDFStore:
             f.flush()
         self.iteration = it + k
         self._state = tuple(random_state)
+
+    def rollback(self, n):
+        """Go back to the intact commit at step ``n`` (0: empty), whose state a slot still holds.
+
+        The ensembles are committed one after another; a kill between two of them leaves some a
+        commit ahead, and resume takes all back to the last step every one of them holds.
+        """
+        if n == self.iteration:
+            return
+        with self.backend.open("a") as f:
+            g = f[self.backend.name]
+            state = None
+            if n > 0:
+                found = [
+                    x
+                    for x in (self._slot(g, s) for s in range(self._SLOTS))
+                    if x is not None and x[1] == n and self._rows_digest(g, x[0], x[1]) == x[2]
+                ]
+                if not found:
+                    raise _Damaged(f"ensemble {self.backend.name} holds no intact commit at {n}")
+                state = found[0][3]
+            g.attrs["iteration"] = n
+        self.iteration, self._state = n, state
 
     def last(self):
         with self.backend.open() as f:

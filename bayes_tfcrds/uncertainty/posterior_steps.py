@@ -29,8 +29,8 @@ from bayes_tfcrds.fit.refine import (
 )
 from bayes_tfcrds.inference.diagnostics import Gates
 from bayes_tfcrds.inference.moves import (
+    DifferentialEvolutionMove,
     MixtureProposal,
-    differential_evolution_move,
     mode_jump_move,
 )
 from bayes_tfcrds.inference.posteriors import (
@@ -60,9 +60,9 @@ def sampler_moves(modes: MixtureProposal | None = None):
     mode of a multimodal posterior.
     """
     if modes is None:
-        return [(differential_evolution_move(), 1.0)]
+        return [(DifferentialEvolutionMove(), 1.0)]
     return [
-        (differential_evolution_move(), 1.0 - MODE_JUMP_SHARE),
+        (DifferentialEvolutionMove(), 1.0 - MODE_JUMP_SHARE),
         (mode_jump_move(modes), MODE_JUMP_SHARE),
     ]
 

@@ -46,10 +46,19 @@ def _iterations(path):
         ]
 
 
-def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monkeypatch):
+@pytest.mark.parametrize(
+    "at, left",
+    [
+        (2, [100, 0, 0, 0]),  # ensemble 1's first commit: resume rolls ensemble 0 back to 0
+        (6, [200, 100, 100, 100]),  # its second: ensemble 0 goes back to step 100's slot
+    ],
+)
+def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monkeypatch, at, left):
     """Ctrl-C after a chunk's rows and generator state are written but before ``iteration`` moves
     on: the file then holds the state of an uncommitted chunk. A resume that took that state
-    with the last committed position would continue a different chain."""
+    with the last committed position would continue a different chain. The ensembles are
+    committed one after another, so the ones already written are a chunk ahead and must come
+    back to where all of them are."""
     path = tmp_path / "chains.h5"
     setitem = h5py.AttributeManager.__setitem__
     commits = []
@@ -57,7 +66,7 @@ def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monke
     def interrupting(self, name, value):
         if name == "iteration" and int(value) > 0:
             commits.append(int(value))
-            if len(commits) == 2:  # the second commit (step 200) of ensemble 0
+            if len(commits) == at:  # commits go ensemble 0, 1, 2, 3 at step 100, then 200
                 raise KeyboardInterrupt
         return setitem(self, name, value)
 
@@ -65,8 +74,9 @@ def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monke
     with pytest.raises(KeyboardInterrupt):
         short_run(n=200, backend_path=path)
     monkeypatch.undo()
-    assert _iterations(path) == [100, 0, 0, 0]
+    assert _iterations(path) == left
     assert_same(short_run(n=200, backend_path=path), reference_run(200))
+    assert _iterations(path) == [200] * 4
 
 
 def test_incomplete_last_commit_is_rolled_back(tmp_path):
@@ -194,13 +204,13 @@ class _Watched:
         return rc
 
 
-def _sampling_line_ensemble_1(text):
-    """True once ensemble 1 of the line posterior has taken a step: ensemble 0 of that run (and the
-    whole H run before it) is then committed, and ensembles 2 and 3 have not started."""
-    # stderr is a pipe here: progress comes as plain lines ("...ensemble 1: 20/200 (10 %), ..."),
+def _sampling_line_past_first_commit(text):
+    """True once the line posterior's ensembles (which step together) are past step 120: its first
+    chunk (100 steps) is then committed, and the run has 80 steps to go."""
+    # stderr is a pipe here: progress comes as plain lines ("...ensemble 0: 120/200 (60 %), ..."),
     # a line every 10 % of the steps (bayes_tfcrds.output.progress)
-    steps = re.findall(r"line \| CRDS ensemble 1: (\d+)/", text)
-    return any(int(s) >= 1 for s in steps)
+    steps = re.findall(r"line \| CRDS ensemble 0: (\d+)/", text)
+    return any(int(s) >= 120 for s in steps)
 
 
 def _chains(out):
@@ -315,7 +325,7 @@ def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_
     bundle, ref = reference
     out = tmp_path / "run"
     run = _Watched(bundle, out)
-    run.wait_for(_sampling_line_ensemble_1, "the line posterior's ensemble 1 sampling")
+    run.wait_for(_sampling_line_past_first_commit, "the line posterior past its first commit")
     rc = run.stop(sig)
     if sig == signal.SIGINT:
         assert rc == 130 and "interrupted: the chains sampled so far are kept" in run.text, (
@@ -327,7 +337,8 @@ def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_
     # stopped mid-sampling: H complete, the line run partly committed, nothing written yet
     assert _iterations(out / "chains_h.h5") == [STEPS] * 4
     line = _iterations(out / "chains_line.h5")
-    assert line[0] == STEPS and line[2:] == [0, 0], line
+    # all ensembles at one step: the first commit (SIGKILL) or the steps taken (SIGINT commits them)
+    assert line == [line[0]] * 4 and STEPS // 2 <= line[0] < STEPS, line
     assert not (out / "budget.json").exists()
     h_stat = (out / "chains_h.h5").stat()
     kept = {e: _chains_rows(out / "chains_line.h5", e) for e in (0, 1)}

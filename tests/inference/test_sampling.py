@@ -184,7 +184,9 @@ def test_correlated_gaussian_recovered_and_gates_pass():
     assert r.rhat_max < 1.01 and r.ess_min > 400
     e, s, w, _ = r.samples.shape
     assert (e, w) == (4, W) and s == r.n_steps - r.burn and r.burn >= 0.2 * r.n_steps
-    assert np.all((r.acceptance > 0.4) & (r.acceptance < 0.9))
+    # differential evolution at its Gaussian-optimal scale 2.38/sqrt(2d) accepts about a third
+    # of its proposals in 3 dimensions (random-walk theory: 0.44 in 1-d, 0.234 as d grows)
+    assert np.all((r.acceptance > 0.2) & (r.acceptance < 0.5))
     flat = r.flat()
 
     # mean within 4 Monte Carlo standard errors (MCSE = sd / sqrt(ESS_bulk))
@@ -426,29 +428,29 @@ def test_backend_refuses_a_different_seed(tmp_path):
         short_run(n=100, backend_path=path, seed=2)
 
 
-ROWS_PER_ENSEMBLE = W * (1 + 400)  # p0 evaluation + one row per walker and step
+ROWS_PER_STEP = 4 * W  # the four ensembles step together: every walker once per step
 
 
 def test_keyboard_interrupt_then_rerun_equals_uninterrupted(tmp_path):
     path = tmp_path / "chains.h5"
-    lp = CountingLogp(interrupt_after=ROWS_PER_ENSEMBLE + 250 * W)
+    lp = CountingLogp(interrupt_after=ROWS_PER_STEP * (1 + 250))  # p0, then inside step 251
     with pytest.raises(KeyboardInterrupt):
         short_run(n=400, backend_path=path, log_prob=lp)
-    assert _iterations(path) == [400, 200, 0, 0]  # committed chunks survived
+    assert _iterations(path) == [200] * 4  # the committed chunks (of 100 steps) survived
     assert_same(short_run(n=400, backend_path=path), reference_run(400))
 
 
 def test_sigkill_then_rerun_equals_uninterrupted(tmp_path):
     path = tmp_path / "chains.h5"
     here = os.path.dirname(os.path.abspath(__file__))
-    kill_after = 2 * ROWS_PER_ENSEMBLE + 130 * W  # inside ensemble 2, after one chunk
+    kill_after = ROWS_PER_STEP * (1 + 130)  # inside step 131, after one commit
     script = (
         f"import sys; sys.path.insert(0, {here!r}); import test_sampling as t\nt.short_run(n=400, "
         f"backend_path={str(path)!r}, log_prob=t.CountingLogp(kill_after={kill_after}))\n"
     )
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, timeout=120)
     assert proc.returncode == -signal.SIGKILL, proc.stderr.decode()[-2000:]
-    assert _iterations(path) == [400, 400, 100, 0]
+    assert _iterations(path) == [100] * 4
     assert_same(short_run(n=400, backend_path=path), reference_run(400))
 
 
