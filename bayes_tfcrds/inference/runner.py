@@ -81,13 +81,12 @@ class _Lockstep:
             coords = np.concatenate([np.array(p[0]) for p in parts])
             lp = np.concatenate([np.array(p[1]) for p in parts])
             return emcee.State(coords, log_prob=lp, random_state=parts[0][2])
-        p0 = np.concatenate([np.array(f(), dtype=float) for f in self._p0])
-        shape = (self.sampler.nwalkers, self.sampler.ndim)
-        if p0.shape != shape:
-            raise ValueError(
-                f"p0_fn returned shape {p0.shape[0] // len(self.stores), p0.shape[1]}, need "
-                f"{(self.n_walkers, self.sampler.ndim)}"
-            )
+        starts = [np.array(f(), dtype=float) for f in self._p0]
+        shape = (self.n_walkers, self.sampler.ndim)
+        for p in starts:
+            if p.shape != shape:
+                raise ValueError(f"p0_fn returned shape {p.shape}, need {shape}")
+        p0 = np.concatenate(starts)
         lp, _ = self.sampler.compute_log_prob(p0)
         if not np.all(np.isfinite(lp)):
             bad = np.nonzero(~np.isfinite(lp))[0] // self.n_walkers

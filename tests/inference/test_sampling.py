@@ -57,7 +57,7 @@ def short_run(seed=3, n=300, **kw):
     kw.setdefault("n_walkers", W)
     return run_ensembles(
         kw.pop("log_prob", gauss_logp),
-        gauss_p0,
+        kw.pop("p0_fn", gauss_p0),
         NAMES,
         np.random.default_rng(seed),
         n_steps=n,
@@ -375,6 +375,11 @@ def test_bad_arguments_are_refused():
             n_steps=10,
             vectorize=True,
         )
+    for bad_p0 in (lambda g, n: g.normal(size=n), lambda g, n: g.normal(size=(n, 2))):
+        with pytest.raises(ValueError, match=r"p0_fn returned shape \(\d+(, 2)?,?\), need"):
+            short_run(n=10, p0_fn=bad_p0)
+    with pytest.raises(ValueError, match="would couple the independent ensembles"):
+        short_run(n=10, moves=[(emcee.moves.StretchMove(), 1.0)])
 
 
 # ----------------------------------------------------------------------------- resume
