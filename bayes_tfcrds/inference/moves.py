@@ -21,6 +21,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import emcee
 import numpy as np
 from scipy import special
 
@@ -105,7 +106,6 @@ def mode_jump_move(proposal: MixtureProposal):
 
     The log proposal ratio ln q(x) - ln q(x') makes it an independence Metropolis-Hastings step.
     """
-    import emcee
 
     def propose(coords, random):
         new = proposal.draw(random, coords.shape[0])
@@ -114,13 +114,7 @@ def mode_jump_move(proposal: MixtureProposal):
     return emcee.moves.MHMove(propose, ndim=proposal.ndim)
 
 
-def _move_base():
-    import emcee
-
-    return emcee.moves.Move
-
-
-class DifferentialEvolutionMove(_move_base()):
+class DifferentialEvolutionMove(emcee.moves.Move):
     """Differential evolution (ter Braak 2006) within each of ``n_groups`` independent ensembles.
 
     The sampler's walkers are ``n_groups`` ensembles of equal size, stored one after the other.
@@ -143,8 +137,6 @@ class DifferentialEvolutionMove(_move_base()):
         return DifferentialEvolutionMove(self.gamma0, self.sigma, n_groups)
 
     def propose(self, model, state):
-        import emcee
-
         n, d = state.coords.shape
         n_groups = self.n_groups
         width = n // n_groups
@@ -179,14 +171,16 @@ class DifferentialEvolutionMove(_move_base()):
 
 
 def ensemble_local(moves, n_groups: int) -> list:
-    """``moves`` ((move, weight) pairs) made to act within each of ``n_groups`` ensembles.
+    """``moves`` made to act within each of ``n_groups`` ensembles, as (move, weight) pairs.
 
-    A move with ``for_groups`` is told the groups; an ``MHMove`` (each walker proposes on its
-    own, as :func:`mode_jump_move` does) needs nothing. Any other move (emcee's stretch,
-    DEMove, ...) draws on walkers of other ensembles and would couple them: refused.
+    ``moves`` as emcee takes them: one move, a list of moves, or (move, weight) pairs. A move
+    with ``for_groups`` is told the groups; an ``MHMove`` (each walker proposes on its own, as
+    :func:`mode_jump_move` does) needs nothing. Any other move (emcee's stretch, DEMove, ...)
+    draws on walkers of other ensembles and would couple them: refused.
     """
-    import emcee
-
+    if isinstance(moves, emcee.moves.Move):  # emcee's forms: one move, moves, (move, weight)s
+        moves = [moves]
+    moves = [m if isinstance(m, tuple) else (m, 1.0 / len(moves)) for m in moves]
     out = []
     for move, weight in moves:
         if hasattr(move, "for_groups"):

@@ -16,7 +16,14 @@ from bayes_tfcrds.inference.diagnostics import Gates, _gate_failures, burn_in, c
 from bayes_tfcrds.inference.moves import DifferentialEvolutionMove, ensemble_local
 from bayes_tfcrds.inference.posteriors import sample_names
 from bayes_tfcrds.inference.result import SamplingResult, _frozen, parameter_values
-from bayes_tfcrds.inference.stores import _HDFStore, _MemoryStore, _same_rng_state, _StepRecorder
+from bayes_tfcrds.inference.stores import (
+    _Damaged,
+    _HDFStore,
+    _MemoryStore,
+    _same_rng_state,
+    _StepRecorder,
+    move_aside,
+)
 from bayes_tfcrds.output.progress import progress_bar
 
 log = logging.getLogger(__name__)
@@ -54,17 +61,25 @@ class _Lockstep:
             vectorize=vectorize,
             backend=_StepRecorder(),
         )
-        self.stores = []
-        for index, (_, stream) in enumerate(pairs):
+        fingerprints = []
+        for _, stream in pairs:
             sq = stream.bit_generator.seed_seq
-            fingerprint = json.dumps(
-                [str(sq.entropy), list(map(int, sq.spawn_key)), n_walkers, ndim, "lockstep", n_ens]
+            fingerprints.append(
+                json.dumps(
+                    [str(sq.entropy), list(map(int, sq.spawn_key)), n_walkers, ndim, "lockstep"]
+                    + [n_ens]
+                )
             )
-            self.stores.append(
-                _MemoryStore(n_walkers, ndim, fingerprint)
-                if backend_path is None
-                else _HDFStore(backend_path, f"ensemble{index}", n_walkers, ndim, fingerprint)
-            )
+        self._open = lambda: [
+            _MemoryStore(n_walkers, ndim, fp)
+            if backend_path is None
+            else _HDFStore(backend_path, f"ensemble{i}", n_walkers, ndim, fp)
+            for i, fp in enumerate(fingerprints)
+        ]
+        self.backend_path = backend_path
+        self.stores = self._open()
+        if any(getattr(st, "moved_aside", False) for st in self.stores[1:]):
+            self.stores = self._open()  # a later group set the file aside under the earlier ones
         self.state = None
 
     @property
@@ -73,9 +88,13 @@ class _Lockstep:
 
     def _initial_state(self):
         n = self.iteration
-        for st in self.stores:  # a kill between the groups' writes of one commit: roll back
-            if st.iteration > n:
-                st.rollback(n)
+        try:
+            for st in self.stores:  # a kill between the groups' writes of one commit: roll back
+                if st.iteration > n:
+                    st.rollback(n)
+        except _Damaged as exc:  # the common step is gone from a group that is ahead
+            move_aside(self.backend_path, str(exc))
+            self.stores, n = self._open(), 0
         if n > 0:
             parts = [st.last() for st in self.stores]
             coords = np.concatenate([np.array(p[0]) for p in parts])
@@ -83,9 +102,11 @@ class _Lockstep:
             return emcee.State(coords, log_prob=lp, random_state=parts[0][2])
         starts = [np.array(f(), dtype=float) for f in self._p0]
         shape = (self.n_walkers, self.sampler.ndim)
-        for p in starts:
+        for e, p in enumerate(starts):
             if p.shape != shape:
                 raise ValueError(f"p0_fn returned shape {p.shape}, need {shape}")
+            if not emcee.ensemble.walkers_independent(p):  # emcee checks the pooled walkers only
+                raise ValueError(f"ensemble {e}: p0_fn returned walkers that are not independent")
         p0 = np.concatenate(starts)
         lp, _ = self.sampler.compute_log_prob(p0)
         if not np.all(np.isfinite(lp)):
@@ -307,7 +328,10 @@ def run_ensembles(
         raise ValueError("R-hat needs at least 4 independent ensembles")
     n_walkers = max(32, 4 * ndim) if n_walkers is None else int(n_walkers)
     if n_walkers < 2 * ndim:
-        raise ValueError(f"emcee's stretch move needs n_walkers >= 2*ndim = {2 * ndim}")
+        raise ValueError(
+            f"need n_walkers >= 2*ndim = {2 * ndim}: each half of an ensemble proposes moves for "
+            "the other and must span the parameter space"
+        )
     if not 1 <= n_steps <= max_steps:
         raise ValueError(f"need 1 <= n_steps ({n_steps}) <= max_steps ({max_steps})")
     if chunk_steps < 1:
@@ -336,7 +360,7 @@ def run_ensembles(
         bars = [
             progress_bar(
                 total=n_steps,
-                initial=min(st.iteration, n_steps),
+                initial=min(lock.iteration, n_steps),
                 desc=f"{prefix}ensemble {e}",
                 position=e,
             )

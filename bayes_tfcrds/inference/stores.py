@@ -76,19 +76,14 @@ class _HDFStore:
         self.path = os.fspath(path)
         self.backend = emcee.backends.HDFBackend(self.path, name=name)
         self._state = None
+        self.moved_aside = False  # True: this store found the file damaged and set it aside
         fresh = True
         if os.path.exists(self.path):
             try:
                 fresh = not self._resume(name, n_walkers, ndim, fingerprint)
             except _Damaged as exc:
-                aside = f"{self.path}.damaged-{os.getpid()}"
-                os.replace(self.path, aside)
-                warnings.warn(
-                    f"{self.path}: {exc}; moved to {aside} and sampling {name} from its seed "
-                    "again (the result does not depend on it)",
-                    RuntimeWarning,
-                    stacklevel=4,
-                )
+                move_aside(self.path, f"{exc}; sampling {name} from its seed again")
+                self.moved_aside = True
                 self.backend = emcee.backends.HDFBackend(self.path, name=name)
         if fresh:
             self.backend.reset(n_walkers, ndim)
@@ -222,6 +217,10 @@ class _HDFStore:
                 if not found:
                     raise _Damaged(f"ensemble {self.backend.name} holds no intact commit at {n}")
                 state = found[0][3]
+            # emcee's own summary of the kept rows (HDFBackend readers), then the counter
+            g["accepted"][:] = g["accepted_step"][:n].sum(axis=0)
+            for i, v in enumerate(state or ()):
+                g.attrs[f"random_state_{i}"] = v
             g.attrs["iteration"] = n
         self.iteration, self._state = n, state
 
@@ -240,6 +239,17 @@ class _HDFStore:
 
 class _Damaged(Exception):
     """A chain file that cannot be resumed from (killed inside a write, or not HDF5)."""
+
+
+def move_aside(path, why: str) -> None:
+    """Rename a chain file that cannot be resumed from, and say so (a new file is started)."""
+    aside = f"{path}.damaged-{os.getpid()}"
+    os.replace(path, aside)
+    warnings.warn(
+        f"{path}: {why}; moved to {aside} (the result does not depend on it)",
+        RuntimeWarning,
+        stacklevel=5,
+    )
 
 
 def _same_rng_state(a, b) -> bool:

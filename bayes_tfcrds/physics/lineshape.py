@@ -245,6 +245,11 @@ def qsdhcp(
             nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, gamma2_hz, delta0_hz, delta2_hz, nu_vc_hz
         )
     )  # fmt: skip
+    shape = np.broadcast_shapes(nu.shape, nu0.shape, gd.shape, g0.shape, g2.shape, d0.shape,
+                                d2.shape, nvc.shape)  # fmt: skip
+    # the frequency-dependent arithmetic in numpy's array loops even for one point (its scalar
+    # complex product rounds differently in the last bit)
+    nu = np.atleast_1d(nu)
     _check_doppler(gd)
     cte = _SQRT_LN2 / gd  # 1/Hz
     c0t = (g0 - 1.5 * g2 + nvc) + 1j * (d0 - 1.5 * d2)  # Hz
@@ -265,7 +270,7 @@ def qsdhcp(
         )
     with np.errstate(invalid="ignore"):
         g = a / (np.pi * (1.0 - nvc * a))
-    return np.asarray(g)
+    return g.reshape(shape)
 
 
 # |u| = |kappa/(1 + kappa Z-)| below which T(u) (see ``_htp_remainder``) is summed from its

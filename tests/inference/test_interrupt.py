@@ -79,6 +79,60 @@ def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monke
     assert _iterations(path) == [200] * 4
 
 
+def test_rollback_leaves_a_consistent_emcee_group(tmp_path, monkeypatch):
+    """A group rolled back to the common step reads, through emcee's own HDFBackend, as a run that
+    stopped there: its acceptance counts and generator state are those of that step."""
+    import emcee
+
+    from bayes_tfcrds.inference.stores import _HDFStore
+
+    path = tmp_path / "chains.h5"
+    setitem = h5py.AttributeManager.__setitem__
+    commits = []
+
+    def interrupting(self, name, value):
+        if name == "iteration" and int(value) > 0:
+            commits.append(int(value))
+            if len(commits) == 6:  # ensemble 1's commit at step 200
+                raise KeyboardInterrupt
+        return setitem(self, name, value)
+
+    monkeypatch.setattr(h5py.AttributeManager, "__setitem__", interrupting)
+    with pytest.raises(KeyboardInterrupt):
+        short_run(n=200, backend_path=path)
+    monkeypatch.undo()
+    with h5py.File(path, "r") as f:
+        fp = f["ensemble0"].attrs["bayes_tfcrds_seed"]
+        walkers, ndim = int(f["ensemble0"].attrs["nwalkers"]), int(f["ensemble0"].attrs["ndim"])
+    store = _HDFStore(path, "ensemble0", walkers, ndim, fp)
+    assert store.iteration == 200
+    store.rollback(100)
+    ahead = emcee.backends.HDFBackend(str(path), name="ensemble0", read_only=True)
+    assert ahead.iteration == 100
+    with h5py.File(path, "r") as f:
+        kept = f["ensemble0/accepted_step"][:100].sum(axis=0)
+        g = f["ensemble1"]  # the group behind: its slot for step 100 holds the sampler's state
+        slot = next(s for s in (0, 1) if g.attrs[f"bayes_tfcrds_state{s}_iteration"] == 100)
+        behind = [g.attrs[f"bayes_tfcrds_state{slot}_{i}"] for i in range(5)]
+    assert np.array_equal(ahead.accepted, kept)
+    a = ahead.random_state
+    assert a[0] == behind[0] and np.array_equal(a[1], behind[1]) and list(a[2:]) == behind[2:]
+
+
+def test_a_damaged_later_group_restarts_every_ensemble(tmp_path):
+    """Ensemble 2 with no intact commit: the file is set aside once and all four restart from
+    their seeds (the others' groups went with the file), to the uninterrupted samples."""
+    path = tmp_path / "chains.h5"
+    short_run(n=200, backend_path=path)
+    with h5py.File(path, "a") as f:
+        for s in (0, 1):
+            f["ensemble2"].attrs[f"bayes_tfcrds_state{s}_iteration"] = -1
+    with pytest.warns(RuntimeWarning, match="ensemble2 has no intact commit.*moved to"):
+        resumed = short_run(n=200, backend_path=path)
+    assert_same(resumed, reference_run(200))
+    assert _iterations(path) == [200] * 4
+
+
 def test_incomplete_last_commit_is_rolled_back(tmp_path):
     """A kill inside HDF5's flush can leave the counter advanced but the chunk's rows (or its
     generator state) not on disk. Both are detected and the store rolls back one chunk."""

@@ -380,6 +380,24 @@ def test_bad_arguments_are_refused():
             short_run(n=10, p0_fn=bad_p0)
     with pytest.raises(ValueError, match="would couple the independent ensembles"):
         short_run(n=10, moves=[(emcee.moves.StretchMove(), 1.0)])
+    calls = []
+
+    def one_degenerate_ensemble(g, n):  # pooled, the 4 x n walkers would look independent
+        calls.append(n)
+        x = g.normal(size=(n, 3))
+        return np.repeat(x[:1], n, axis=0) if len(calls) == 2 else x
+
+    with pytest.raises(ValueError, match="ensemble 1: p0_fn returned walkers that are not indep"):
+        short_run(n=10, p0_fn=one_degenerate_ensemble)
+
+
+def test_moves_are_taken_in_emcees_forms():
+    # one move, a list of moves, or (move, weight) pairs: the same chains for the same move
+    from bayes_tfcrds.inference.moves import DifferentialEvolutionMove
+
+    ref = short_run(n=60, moves=[(DifferentialEvolutionMove(), 1.0)])
+    assert_same(ref, short_run(n=60, moves=DifferentialEvolutionMove()))
+    assert_same(ref, short_run(n=60, moves=[DifferentialEvolutionMove()]))
 
 
 # ----------------------------------------------------------------------------- resume
