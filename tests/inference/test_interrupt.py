@@ -46,6 +46,26 @@ def _iterations(path):
         ]
 
 
+def _run_interrupted_at_commit(path, monkeypatch, at):
+    """A 200-step run to ``path`` stopped by Ctrl-C inside its ``at``-th group commit, after the
+    rows and generator state are written and before the ``iteration`` counter moves on (commits go
+    ensemble 0, 1, 2, 3 at step 100, then at step 200)."""
+    setitem = h5py.AttributeManager.__setitem__
+    commits = []
+
+    def interrupting(self, name, value):
+        if name == "iteration" and int(value) > 0:
+            commits.append(int(value))
+            if len(commits) == at:
+                raise KeyboardInterrupt
+        return setitem(self, name, value)
+
+    monkeypatch.setattr(h5py.AttributeManager, "__setitem__", interrupting)
+    with pytest.raises(KeyboardInterrupt):
+        short_run(n=200, backend_path=path)
+    monkeypatch.undo()
+
+
 @pytest.mark.parametrize(
     "at, left",
     [
@@ -60,20 +80,7 @@ def test_interrupt_between_rows_and_commit_point_resumes_exactly(tmp_path, monke
     committed one after another, so the ones already written are a chunk ahead and must come
     back to where all of them are."""
     path = tmp_path / "chains.h5"
-    setitem = h5py.AttributeManager.__setitem__
-    commits = []
-
-    def interrupting(self, name, value):
-        if name == "iteration" and int(value) > 0:
-            commits.append(int(value))
-            if len(commits) == at:  # commits go ensemble 0, 1, 2, 3 at step 100, then 200
-                raise KeyboardInterrupt
-        return setitem(self, name, value)
-
-    monkeypatch.setattr(h5py.AttributeManager, "__setitem__", interrupting)
-    with pytest.raises(KeyboardInterrupt):
-        short_run(n=200, backend_path=path)
-    monkeypatch.undo()
+    _run_interrupted_at_commit(path, monkeypatch, at)
     assert _iterations(path) == left
     assert_same(short_run(n=200, backend_path=path), reference_run(200))
     assert _iterations(path) == [200] * 4
@@ -87,20 +94,7 @@ def test_rollback_leaves_a_consistent_emcee_group(tmp_path, monkeypatch):
     from bayes_tfcrds.inference.stores import _HDFStore
 
     path = tmp_path / "chains.h5"
-    setitem = h5py.AttributeManager.__setitem__
-    commits = []
-
-    def interrupting(self, name, value):
-        if name == "iteration" and int(value) > 0:
-            commits.append(int(value))
-            if len(commits) == 6:  # ensemble 1's commit at step 200
-                raise KeyboardInterrupt
-        return setitem(self, name, value)
-
-    monkeypatch.setattr(h5py.AttributeManager, "__setitem__", interrupting)
-    with pytest.raises(KeyboardInterrupt):
-        short_run(n=200, backend_path=path)
-    monkeypatch.undo()
+    _run_interrupted_at_commit(path, monkeypatch, 6)  # ensemble 1's commit at step 200
     with h5py.File(path, "r") as f:
         fp = f["ensemble0"].attrs["bayes_tfcrds_seed"]
         walkers, ndim = int(f["ensemble0"].attrs["nwalkers"]), int(f["ensemble0"].attrs["ndim"])
