@@ -79,6 +79,10 @@ def run_case(args):
     dt = time.perf_counter() - t0
     fin = res.evaluations[-1].gaps
     right = right_effects(name)
+    # a step names its effect and those the data cannot tell from it (its alternatives): the
+    # set is right when it holds a right effect, and the named one then adds nothing spurious
+    sets = [{s["effect"], *(a["effect"] for a in s.get("alternatives") or ())} for s in res.steps]
+    named_any = set().union(*sets) if sets else set()
     return {
         "family": family,
         "hidden": name,
@@ -86,8 +90,9 @@ def run_case(args):
         "start": start or "crds+voigt",
         "effects_added": res.effects_added,
         "first": res.effects_added[0] if res.effects_added else "nothing",
-        "named": name == "nothing" or set(name.split("+")) <= set(res.effects_added),
-        "spurious": [e for e in res.effects_added if e not in right],
+        "named": name == "nothing" or set(name.split("+")) <= named_any,
+        "spurious": [s["effect"] for s, st in zip(res.steps, sets) if not st & right],
+        "ambiguous": [sorted(st) for st in sets if len(st) > 1],
         "unexplained": [u["gap"] for u in res.unexplained],
         "stop_reason": res.stop_reason,
         "seconds": dt,
@@ -113,8 +118,8 @@ def _family_table(results, fam) -> tuple[list, dict]:
     lines = [
         "| hidden \\ named first | "
         + " | ".join(cols)
-        + " | named | spurious | unexplained | time (s, median [max]) |",
-        "|---|" + "---|" * (len(cols) + 4),
+        + " | named | of which ambiguous | spurious | unexplained | time (s, median [max]) |",
+        "|---|" + "---|" * (len(cols) + 5),
     ]
     summary = {}
     rs_f = [r for r in results if r["family"] == fam]
@@ -124,10 +129,12 @@ def _family_table(results, fam) -> tuple[list, dict]:
         named = sum(r["named"] for r in rs)
         spur = sum(bool(r["spurious"]) for r in rs)
         unex = sum(bool(r["unexplained"]) for r in rs)
+        amb = sum(bool(r["named"] and r["ambiguous"]) for r in rs)
         times = [r["seconds"] for r in rs]
         summary[n] = {
             "counts": counts,
             "named": named,
+            "named_ambiguous": amb,
             "spurious": spur,
             "unexplained": unex,
             "runs": len(rs),
@@ -137,7 +144,7 @@ def _family_table(results, fam) -> tuple[list, dict]:
         lines.append(
             f"| {n} | "
             + " | ".join(str(counts.get(c, 0)) if counts.get(c, 0) else "." for c in cols)
-            + f" | {named}/{len(rs)} | {spur}/{len(rs)} | {unex}/{len(rs)} | "
+            + f" | {named}/{len(rs)} | {amb} | {spur}/{len(rs)} | {unex}/{len(rs)} | "
             f"{np.median(times):.0f} [{np.max(times):.0f}] |"
         )
     return lines, summary
@@ -173,9 +180,11 @@ def _markdown(results, families, a, wall) -> tuple[list, dict]:
         "",
         f"Reduced letter-D2 campaign ({CAMPAIGN.n_points} requested modes, {CAMPAIGN.n_samples} "
         f"samples), seeds {a.seed}..{a.seed + a.seeds - 1}; rows: hidden effect; columns: first "
-        "effect named; named: the hidden effect is among those added; spurious: an effect added "
-        "that is not hidden; unexplained: the run ended with gaps open that no candidate "
-        f"explains. Wall time {wall / 60:.1f} min with {a.workers} workers.",
+        "effect named; named: the hidden effect is among those added, or named beside an added "
+        "one as an effect the data cannot tell from it (Delta BIC < 2: ambiguous); spurious: an "
+        "effect added whose step names no hidden effect; unexplained: the run ended with gaps "
+        f"open that no candidate explains. Wall time {wall / 60:.1f} min with {a.workers} "
+        "workers.",
         "",
         _totals_line("All runs", tot),
     ]
@@ -189,7 +198,9 @@ def _markdown(results, families, a, wall) -> tuple[list, dict]:
     for r in results:
         lines.append(
             f"* {r['family']} {r['hidden']} seed {r['seed']}: "
-            f"{', '.join(r['effects_added']) or 'none'}; {r['seconds']:.0f} s; {r['stop_reason']}; "
+            f"{', '.join(r['effects_added']) or 'none'}"
+            + "".join(f" ({' or '.join(st)} indistinguishable)" for st in r.get("ambiguous", []))
+            + f"; {r['seconds']:.0f} s; {r['stop_reason']}; "
             "z_cal " + ", ".join(f"{k} {v:+.1f}" for k, v in r["final_z_cal"].items())
         )
     return lines, summary

@@ -15,8 +15,14 @@ STEP_HEADER = ("step", "effect added", "evidence (Delta BIC)", "block", "fitted 
 
 
 def effect_with_form(step: dict) -> str:
-    """A step's effect with its family's chosen member: "extinction_tail (2 exponentials)"."""
-    return step["effect"] + (f" ({step['form']})" if step.get("form") else "")
+    """A step's effect with its family's chosen member: "extinction_tail (2 exponentials)".
+
+    Effects the data cannot tell from it follow: "... or hard_collisions (soft collisions)".
+    """
+    out = step["effect"] + (f" ({step['form']})" if step.get("form") else "")
+    for alt in step.get("alternatives") or ():
+        out += f" or {alt['effect']}" + (f" ({alt['form']})" if alt.get("form") else "")
+    return out
 
 
 def _params(params: dict) -> str:

@@ -41,11 +41,14 @@ from scipy import stats
 
 from bayes_tfcrds.discovery.nulls import N_BOOT, gap_nulls, pre_extinction_noise
 from bayes_tfcrds.fit.extensions import (
+    PROFILE_DEFAULT_LABEL,
+    PROFILE_FORMS,
     SPECTRUM_DEFAULT_LABEL,
     SPECTRUM_FORMS,
     TransientSpec,
     family_member,
     fit_family,
+    fit_profile_family,
     fit_spectrum_extended,
     fit_spectrum_family,
     fit_transient_rows,
@@ -92,6 +95,11 @@ WORSEN_MARGIN = 1.0
 INDEPENDENT_BLOCKS = ("reference", "beat")
 #: candidates with evidence tried in turn per round (each costs an evaluation and a bootstrap)
 MAX_TRIES = 4
+#: another candidate of the same data block whose evidence is within this of the added one's
+#: explains the data as well: "not worth more than a bare mention" (Delta BIC < 2, Kass and
+#: Raftery, JASA 90 (1995) 773). The step names both; e.g. soft-collision narrowing and a
+#: quadratic speed dependence differ by < 1e-6 of the peak in the Doppler regime.
+AMBIGUITY_BIC = 2.0
 #: the data block each gap metric measures (a candidate is judged on the gaps of its blocks)
 GAP_BLOCK = {
     "transient_chi2": "transients",
@@ -115,14 +123,16 @@ class ExperimentModel:
 
     effects: frozenset = frozenset()
     #: higher members of spectrum-level families in use (keys of SPECTRUM_FORMS, e.g.
-    #: ``etalon_harmonic``); transient-level forms live in the shared parameters
+    #: ``etalon_harmonic``, or of PROFILE_FORMS, e.g. ``soft_collisions``); transient-level
+    #: forms live in the shared parameters
     forms: frozenset = frozenset()
 
     def __post_init__(self):
         bad = set(self.effects) - set(CANDIDATES)
         if bad:
             raise ValueError(f"unknown effect(s) {sorted(bad)}; choose from {list(CANDIDATES)}")
-        bad_forms = {f for f in self.forms if SPECTRUM_FORMS.get(f, ("",))[0] not in self.effects}
+        owner = {f: v[0] for f, v in (*SPECTRUM_FORMS.items(), *PROFILE_FORMS.items())}
+        bad_forms = {f for f in self.forms if owner.get(f, "") not in self.effects}
         if bad_forms:
             raise ValueError(f"form(s) {sorted(bad_forms)} need their effect in the model")
         if "window_history" in self.effects and "transfer_function" not in self.effects:
@@ -143,21 +153,34 @@ class ExperimentModel:
     @property
     def profile(self) -> str:
         sd, hc = "speed_dependence" in self.effects, "hard_collisions" in self.effects
-        return {
+        name = {
             (False, False): "voigt",
             (True, False): "sdvp",
             (False, True): "rautian",
             (True, True): "qsdhcp",
         }[(sd, hc)]
+        for form in self.forms & set(PROFILE_FORMS):
+            if PROFILE_FORMS[form][3] == name:
+                return PROFILE_FORMS[form][2]
+        return name
 
     @property
     def spectrum_extras(self) -> tuple:
         return tuple(e for e in ("etalon", "neighbour_line") if e in self.effects) + tuple(
-            sorted(self.forms)
+            sorted(self.forms - set(PROFILE_FORMS))
         )
 
     def plus(self, effect, form=None) -> ExperimentModel:
-        return ExperimentModel(self.effects | {effect}, self.forms | ({form} if form else set()))
+        """The model with ``effect`` (in its family member ``form``) added.
+
+        A line-shape member (power law, soft collisions) stands for its effect alone: with both
+        speed dependence and narrowing in the model the profile is the qSDHCP.
+        """
+        effects = self.effects | {effect}
+        forms = self.forms | ({form} if form else set())
+        if {"speed_dependence", "hard_collisions"} <= effects:
+            forms = forms - set(PROFILE_FORMS)
+        return ExperimentModel(effects, forms)
 
     def label(self) -> str:
         return "+".join(
@@ -776,6 +799,24 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
                 f"{lab}: {c + kk * np.log(lf.n):.1f}" for lab, c, kk in fam.scores
             )
             note += ")"
+        elif effect in PROFILE_DEFAULT_LABEL and new_model.profile in ("sdvp", "rautian"):
+            # a line-shape family alone in the model: its default or its other member
+            a, ua = absorption_from_tau(ev.tau[:, 0], ev.tau_u[:, 0])
+            fam = fit_profile_family(
+                effect,
+                nu,
+                a,
+                ua,
+                new_model.profile,
+                doppler_of(bundle.sample),
+                bundle.sample.nu0_hz,
+                new_model.spectrum_extras,
+            )
+            lf, new_model = fam.fit, model.plus(effect, fam.form)
+            note = f"form: {fam.label} (BIC among " + ", ".join(
+                f"{lab}: {c + kk * np.log(lf.n):.1f}" for lab, c, kk in fam.scores
+            )
+            note += ")"
         else:
             lf = fit_lines(bundle, config, new_model, nu, ev.tau[:, 0], ev.tau_u[:, 0])
     except (ValueError, np.linalg.LinAlgError) as exc:
@@ -794,6 +835,8 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
         "etalon2_amplitude_per_m": "1/m",
         "etalon2_phase_rad": "rad",
         "neighbour_width_scale": "1",
+        "sd_exponent": "1",
+        "delta_sd_hz": "Hz",
     }
     pu = {n: (lf.value(n), lf.stderr(n), units.get(n, "")) for n in new_names}
     new = ModelState(new_model, dict(st.shared), dict(st.shared_u), st.calibration)
@@ -966,8 +1009,13 @@ def _form_label(cand: Candidate) -> str:
         params = cand.state.shared.get(cand.effect, {})
         return family_member(cand.effect, form_of(cand.effect, params))[1] if params else ""
     if cand.effect in SPECTRUM_DEFAULT_LABEL:
-        forms = [f for f in cand.state.model.forms if SPECTRUM_FORMS[f][0] == cand.effect]
+        forms = [
+            f for f in cand.state.model.forms if SPECTRUM_FORMS.get(f, ("",))[0] == cand.effect
+        ]
         return SPECTRUM_FORMS[forms[0]][1] if forms else SPECTRUM_DEFAULT_LABEL[cand.effect]
+    if cand.effect in PROFILE_DEFAULT_LABEL:
+        forms = [f for f in cand.state.model.forms if PROFILE_FORMS.get(f, ("",))[0] == cand.effect]
+        return PROFILE_FORMS[forms[0]][1] if forms else PROFILE_DEFAULT_LABEL[cand.effect]
     return ""
 
 
@@ -1168,18 +1216,40 @@ def _select(bundle, config, ev, null, t_cuts, threshold, max_steps, say) -> dict
             break
         best, new_ev = chosen
         runner = next((c for c in cands if c is not best), None)
+        alternatives = indistinguishable(best, passing)
         out["steps"].append(
             {
                 **_step_record(best, runner, ev, new_ev),
                 "level": level,
                 "explained_fraction": best.explained,
+                "alternatives": alternatives,
             }
         )
         out["added"].append(best.effect)
         say(f"added {best.effect} (evidence {best.evidence:.1f}): {_gap_line(new_ev)}")
+        if alternatives:
+            say(
+                "  the data do not tell it from "
+                + ", ".join(f"{a['effect']} (evidence {a['evidence']:.1f})" for a in alternatives)
+            )
         ev = new_ev
         out["evaluations"].append(ev)
     return out
+
+
+def indistinguishable(best: Candidate, passing: list) -> list:
+    """Candidates of ``best``'s data block whose evidence is within :data:`AMBIGUITY_BIC` of its.
+
+    Each as {effect, form, evidence}: the step names them beside the effect it adds, which is
+    the one whose model left the least misfit (the data cannot tell them apart).
+    """
+    return [
+        {"effect": c.effect, "form": _form_label(c), "evidence": float(c.evidence)}
+        for c in passing
+        if c is not best
+        and c.block == best.block
+        and abs(c.evidence - best.evidence) < AMBIGUITY_BIC
+    ]
 
 
 def worsened_gaps(before: Evaluation, after: Evaluation, block: str) -> list:

@@ -59,6 +59,7 @@ from scipy import optimize
 from bayes_tfcrds.core.constants import C
 from bayes_tfcrds.core.linalg import central_jacobian, covariance_from_fisher
 from bayes_tfcrds.fit.ringdown import fit_transients
+from bayes_tfcrds.physics.collision_profiles import galatry, power_law_sdvoigt
 from bayes_tfcrds.physics.forward import (
     extinction_grid,
     filtered_response,
@@ -979,7 +980,37 @@ PROFILE_SHAPE_FREE = {
     "sdvp": ("gamma0_hz", "gamma2_hz"),
     "rautian": ("gamma0_hz", "nu_vc_hz"),
     "qsdhcp": ("gamma0_hz", "gamma2_hz", "nu_vc_hz"),
+    "sdvp_power": ("gamma0_hz", "sd_exponent", "delta_sd_hz"),
+    "galatry": ("gamma0_hz", "nu_vc_hz"),
 }
+
+#: the other members of the line-shape families: form -> (effect, label, profile, default
+#: profile it replaces). Power-law speed dependence Gamma(v) ~ v^m (its shift's speed-dependent
+#: part delta_sd with the same law) beside the quadratic one;
+#: soft (Galatry) beside hard (Rautian) velocity-changing collisions, its nu_VC the velocity-
+#: diffusion rate beta/(2 pi). Each replaces its default only while it is the one line-shape
+#: effect in the model (both effects together: qSDHCP).
+PROFILE_FORMS = {
+    "sd_power_law": ("speed_dependence", "power law v^m", "sdvp_power", "sdvp"),
+    "soft_collisions": ("hard_collisions", "soft collisions (Galatry)", "galatry", "rautian"),
+}
+PROFILE_DEFAULT_LABEL = {"speed_dependence": "quadratic", "hard_collisions": "hard (Rautian)"}
+
+
+def _line_profile(profile_name, det, offset_hz, doppler_hwhm_hz, shape):
+    """Complex profile (1/Hz) of the spectrum model's line, the family members included."""
+    if profile_name == "sdvp_power":
+        return power_law_sdvoigt(
+            det,
+            offset_hz,
+            doppler_hwhm_hz,
+            shape["gamma0_hz"],
+            shape["sd_exponent"],
+            delta_sd_hz=shape["delta_sd_hz"],
+        )
+    if profile_name == "galatry":
+        return galatry(det, offset_hz, doppler_hwhm_hz, shape["gamma0_hz"], 0.0, shape["nu_vc_hz"])
+    return profile(profile_name, det, offset_hz, doppler_hwhm_hz, **shape)
 
 
 @dataclass(frozen=True)
@@ -1032,16 +1063,16 @@ def spectrum_model(theta, names, kind, profile_name, nu_hz, nu_ref_hz, doppler_h
     p.update(fixed or {})
     shape = {k: p[k] for k in PROFILE_SHAPE_FREE[profile_name]}
     det = nu_hz - nu_ref_hz
-    g = profile(profile_name, det, p["position_offset_hz"], doppler_hwhm_hz, **shape)
+    g = _line_profile(profile_name, det, p["position_offset_hz"], doppler_hwhm_hz, shape)
     if "neighbour_offset_hz" in p:
         ws = p.get("neighbour_width_scale", 1.0)
         n_shape = {k: (v * ws if k in ("gamma0_hz", "gamma2_hz") else v) for k, v in shape.items()}
-        g = g + p["neighbour_ratio"] * profile(
+        g = g + p["neighbour_ratio"] * _line_profile(
             profile_name,
             det,
             p["position_offset_hz"] + p["neighbour_offset_hz"],
             doppler_hwhm_hz * ws,
-            **n_shape,
+            n_shape,
         )
     if kind == "absorption":
         y = p["line_area"] * g.real + p["baseline"] + p.get("slope", 0.0) * det
@@ -1069,6 +1100,7 @@ _LOWER_BOUNDS = {
     "etalon_amplitude_per_m": 0.0,
     "etalon2_amplitude_per_m": 0.0,
     "neighbour_width_scale": 0.2,
+    "sd_exponent": -0.9,
 }
 
 
@@ -1084,6 +1116,8 @@ def _absolute_scales(doppler_hwhm_hz) -> dict:
         "neighbour_ratio": 1e-4,
         "etalon2_amplitude_per_m": 1e-8,
         "etalon2_phase_rad": 1.0,
+        "sd_exponent": 0.1,
+        "delta_sd_hz": 1e-3 * doppler_hwhm_hz,
     }
 
 
@@ -1112,6 +1146,8 @@ def _default_start(kind, nu_hz, y, doppler_hwhm_hz) -> dict:
         "etalon2_amplitude_per_m": 0.0,
         "etalon2_phase_rad": 0.0,
         "neighbour_width_scale": 1.0,
+        "sd_exponent": 0.2,
+        "delta_sd_hz": 0.0,
     }
     return default
 
@@ -1169,7 +1205,12 @@ def fit_spectrum_extended(
     lo = _LOWER_BOUNDS
     lo_v = np.array([lo.get(n, -np.inf) for n in names])
     span = float(np.ptp(nu_hz))
-    upper = {"etalon_period_hz": 2 * span, "neighbour_ratio": 0.5, "neighbour_width_scale": 5.0}
+    upper = {
+        "etalon_period_hz": 2 * span,
+        "neighbour_ratio": 0.5,
+        "neighbour_width_scale": 5.0,
+        "sd_exponent": 1.5,
+    }
     hi_v = np.array([upper.get(n, np.inf) for n in names])
     nonsc = _absolute_scales(doppler_hwhm_hz)
 
@@ -1342,6 +1383,36 @@ def fit_spectrum_family(
             continue
         start = _form_start(fit0, [form], np.asarray(u, float), nu_ref_hz)
         fit1 = fit_spectrum_extended(*args, (*extras, effect, form), start=start)
+        scores.append((label, fit1.chi2, fit1.k))
+        if fit1.chi2 + fit1.k * np.log(n) < best[2].chi2 + best[2].k * np.log(n):
+            best = (form, label, fit1)
+    return SpectrumFamilyFit(effect, best[0], best[1], best[2], tuple(scores))
+
+
+def fit_profile_family(
+    effect, nu_hz, y, u, default_profile, doppler_hwhm_hz, nu_ref_hz, extras=()
+) -> SpectrumFamilyFit:
+    """Fit the line with ``effect``'s line-shape family (speed dependence or narrowing).
+
+    The default member (``default_profile``: sdvp or rautian) first, then the other member of
+    :data:`PROFILE_FORMS` started from it (the power law's exponent from the quadratic's slope at
+    the most probable speed, m = 2 Gamma2/Gamma0; Galatry's rate from Rautian's). The member
+    with the lowest BIC (chi2 + k ln n) is kept.
+    """
+    args = ("absorption", nu_hz, y, u)
+    fit0 = fit_spectrum_extended(*args, default_profile, doppler_hwhm_hz, nu_ref_hz, extras)
+    n = fit0.n
+    label0 = PROFILE_DEFAULT_LABEL[effect]
+    scores = [(label0, fit0.chi2, fit0.k)]
+    best = (None, label0, fit0)
+    for form, (eff, label, prof, default) in PROFILE_FORMS.items():
+        if eff != effect or default != default_profile:
+            continue
+        start = dict(zip(fit0.names, fit0.values))
+        if "gamma2_hz" in start:
+            ratio = start.pop("gamma2_hz") / max(start["gamma0_hz"], 1e-30)
+            start["sd_exponent"] = float(np.clip(2.0 * ratio, 0.02, 1.0))
+        fit1 = fit_spectrum_extended(*args, prof, doppler_hwhm_hz, nu_ref_hz, extras, start=start)
         scores.append((label, fit1.chi2, fit1.k))
         if fit1.chi2 + fit1.k * np.log(n) < best[2].chi2 + best[2].k * np.log(n):
             best = (form, label, fit1)

@@ -98,7 +98,13 @@ def test_hidden_effect_is_named_first_and_gaps_close(effect, hidden_runs):
     res = discover(bundle, "D2", start)
     hidden_runs[effect] = res
     assert res.effects_added, f"nothing found for hidden {effect}"
-    assert res.effects_added[0] == effect, res.effects_added
+    # named first: added, or named beside the added one as indistinguishable (Delta BIC < 2;
+    # quadratic speed dependence and soft-collision narrowing in the Doppler regime)
+    first = res.steps[0]
+    assert effect in {first["effect"], *(a["effect"] for a in first["alternatives"])}, (
+        res.effects_added,
+        first["alternatives"],
+    )
     assert res.steps[0]["evidence"] > DEFAULT_THRESHOLD
     final = res.evaluations[-1].gaps
     assert not _at_noise_level(final), (res.effects_added, _at_noise_level(final))

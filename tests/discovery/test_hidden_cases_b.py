@@ -173,3 +173,28 @@ def test_discovery_names_an_effect_written_in_another_form(name, seed, right):
     res = discover(bundle, hb.CONFIG, start, rng=np.random.default_rng(seed))
     # (the second mode fails with the first acceptable candidate added instead: baseline_drift)
     assert res.effects_added == right, res.effects_added  # named, nothing spurious
+
+
+@pytest.mark.parametrize("name", ["speed_dependence", "hard_collisions"])
+def test_line_shape_written_in_another_form_is_named(name):
+    # the power law (width and shift ~ v^m) is named by the family's power-law member, with m and
+    # the shift's speed dependence recovered; the soft collisions are named too, but in the
+    # Doppler regime a quadratic speed dependence gives the same profile to < 1e-6 of its peak,
+    # so the step names both (Delta BIC < 2) and nothing else is added
+    builder, start = hb.HIDDEN_CASES_B[name]
+    camp = replace(Campaign(), n_points=21, n_samples=4096)
+    bundle, truth = builder(np.random.default_rng([2, 11]), camp)
+    res = discover(bundle, hb.CONFIG, start, rng=np.random.default_rng(11))
+    assert len(res.steps) == 1, res.effects_added
+    step = res.steps[0]
+    named = {step["effect"], *(a["effect"] for a in step["alternatives"])}
+    if name == "speed_dependence":
+        assert step["effect"] == name and step["form"] == "power law v^m", step["form"]
+        assert not step["alternatives"]
+        p = step["params"]
+        assert abs(p["sd_exponent"]["value"] - 0.2) < 4 * p["sd_exponent"]["u"], p
+        d0 = truth["line"]["delta0_hz"]
+        assert abs(p["delta_sd_hz"]["value"] - d0) < 4 * p["delta_sd_hz"]["u"], (p, d0)
+    else:
+        assert named == {"hard_collisions", "speed_dependence"}, step
+    assert not res.unexplained, res.stop_reason
