@@ -116,7 +116,10 @@ def simulated_ringdowns(config, ev, noise: NoiseModel, rng):
     a_model = a + lf.residuals_norm * ua  # residuals_norm = (model - data) / u
     tau_model = 1.0 / (C * a_model)
     spec = ev.state.spec()
-    v, mask = model_transients(rd.time_s, float(ev.t_cuts[0]), spec, tau_model, ev.coef_first)
+    nu = np.asarray(rd.nu_hz, float)[ev.good]
+    v, mask = model_transients(
+        rd.time_s, float(ev.t_cuts[0]), spec, tau_model, ev.coef_first, nu_hz=nu
+    )
     level = np.asarray(rd.noise_v, float)[ev.good]
     level = level[:, None] if level.ndim == 1 else level
     noisy = v + level * noise.draw(v.shape, rng)

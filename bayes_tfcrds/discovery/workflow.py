@@ -25,6 +25,9 @@ parametric bootstrap under the current model (:mod:`bayes_tfcrds.discovery.nulls
   evidence is measured on a candidate's own block, so a term that describes the transients alone
   (a damped beat for a slow detector path, an AC-coupling undershoot for a second mode) can
   outscore the effect that also explains the beat note or keeps the decay times a line;
+* a candidate of the same block whose evidence is within ``AMBIGUITY_BIC`` = 2 of the added
+  one's is named beside it (the step's ``alternatives``): the data cannot tell the two apart
+  (soft-collision narrowing and a quadratic speed dependence in the Doppler regime);
 * when gaps stay open and no candidate explains them, discovery stops and reports "unexplained
   structure" with the open gaps and where they are, instead of adding the nearest candidates.
 
@@ -45,6 +48,7 @@ from bayes_tfcrds.fit.extensions import (
     PROFILE_FORMS,
     SPECTRUM_DEFAULT_LABEL,
     SPECTRUM_FORMS,
+    LineAbsorption,
     TransientSpec,
     family_member,
     fit_family,
@@ -216,6 +220,8 @@ class ModelState:
     shared: dict = field(default_factory=dict)
     shared_u: dict = field(default_factory=dict)
     calibration: object = None
+    #: the line (LineAbsorption) a detuned second mode sees, as fitted when that mode was added
+    line: object = None
 
     def spec(self) -> TransientSpec:
         tf = (
@@ -228,6 +234,7 @@ class ModelState:
             self.model.window,
             tf,
             {k: v for k, v in self.shared.items() if k in self.model.effects},
+            self.line,
         )
 
 
@@ -647,10 +654,11 @@ def _calibration(config, window, t_cuts):
     return _CAL_CACHE[key][1]
 
 
-def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Candidate:
+def _try_transient_effect(bundle, config, ev: Evaluation, effect, with_cov: bool) -> Candidate:
     """A transient-level effect, scored on the transient block.
 
-    Its shared parameters are fitted over every transient at the first t_cut.
+    Its shared parameters are fitted over every transient at the first t_cut; a second mode may
+    see the line as the evaluation fitted it (its detuned member).
     """
     st = ev.state
     model = st.model
@@ -659,6 +667,9 @@ def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Can
     tc0 = np.full(m, ev.t_cuts[0])
     chi2_t, n_t = ev.block["transients"]
     base = st.spec()
+    if effect == "second_mode" and ev.lines:
+        line = LineAbsorption(ev.lines[0], doppler_of(bundle.sample), bundle.sample.nu0_hz)
+        base = replace(base, line=line)
     try:
         fam = fit_family(
             effect, rd, tc0, ev.good, base, ev.tau[:, 0], ev.resid_first, chi2_t, with_cov
@@ -678,6 +689,7 @@ def _try_transient_effect(config, ev: Evaluation, effect, with_cov: bool) -> Can
         {**st.shared, effect: params},
         {**st.shared_u, effect: {n: pu[n][1] for n in pu}},
         st.calibration,
+        base.line if "detuning_hz" in params else st.line,
     )
     return Candidate(
         effect,
@@ -713,7 +725,7 @@ def _try_chain_effect(config, ev: Evaluation, effect, t_cuts) -> Candidate:
         cal = _calibration(config, new_model.window, t_cuts)
     except (AnalysisError, RuntimeError, ValueError) as exc:
         return _fail(effect, f"calibration failed: {exc}")
-    new = ModelState(new_model, dict(st.shared), dict(st.shared_u), cal)
+    new = ModelState(new_model, dict(st.shared), dict(st.shared_u), cal, st.line)
     if effect == "transfer_function":
         b_old, b_new = ev.beat, beat_block(config, new)
         if b_old is None or b_new is None:
@@ -839,7 +851,7 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
         "delta_sd_hz": "Hz",
     }
     pu = {n: (lf.value(n), lf.stderr(n), units.get(n, "")) for n in new_names}
-    new = ModelState(new_model, dict(st.shared), dict(st.shared_u), st.calibration)
+    new = ModelState(new_model, dict(st.shared), dict(st.shared_u), st.calibration, st.line)
     return Candidate(effect, dchi2 - k * np.log(lf.n), dchi2, k, lf.n, "spectrum", pu, new, note)
 
 
@@ -852,7 +864,7 @@ def try_candidate(
     computed only with ``with_cov``: discovery asks for it for the effect it adds.
     """
     if effect in TRANSIENT_LEVEL:
-        return _try_transient_effect(config, ev, effect, with_cov)
+        return _try_transient_effect(bundle, config, ev, effect, with_cov)
     if effect in ("transfer_function", "window_history"):
         return _try_chain_effect(config, ev, effect, t_cuts)
     return _try_spectrum_effect(bundle, config, ev, effect)
@@ -979,6 +991,8 @@ def _start_state(bundle, config, start, t_cuts) -> ModelState:
         c = try_candidate(bundle, config, ev0, eff, t_cuts, with_cov=True)
         state.shared[eff] = {k: v[0] for k, v in c.params.items()}
         state.shared_u[eff] = {k: v[1] for k, v in c.params.items()}
+        if c.state is not None and c.state.line is not None:
+            state.line = c.state.line  # a detuned second mode keeps the line it was fitted on
     return state
 
 
@@ -991,7 +1005,7 @@ def _add_shared_uncertainty(config, ev: Evaluation, best: Candidate) -> None:
         config.ringdowns,
         np.full(ev.good.size, ev.t_cuts[0]),
         ev.good,
-        ev.state.spec(),
+        replace(ev.state.spec(), line=best.state.line),
         {k: v[0] for k, v in best.params.items()},
         ev.tau[:, 0],
     )

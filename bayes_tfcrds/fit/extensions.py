@@ -16,7 +16,9 @@ small optimisation of the total chi2):
   (V_ref = 1 V) and fitted with the unchanged model.
 * ``baseline_drift``: shared drift slope (V/s) subtracted from the data.
 * ``second_mode``: g -> (1 - f) g(tau) + f g(r tau); shared fraction f and decay-time ratio r
-  (its decay time scales with tau).
+  (its decay time scales with tau). Its detuned member lets the mode sit delta away from the
+  probed one and see the line there, 1/tau_2 = 1/tau + d + c (alpha(nu + delta) - alpha(nu)),
+  alpha from the line as last fitted (:class:`LineAbsorption`, ``TransientSpec.line``).
 * ``extinction_tail``: the cavity fed by f exp(-t/tau_x) after extinction; shared f and tau_x
   (the tail time is the same at every spectral point).
 * ``mode_beating``: exp(-t/tau) cos / sin (2 pi f_b t) columns with per-transient amplitudes and
@@ -127,6 +129,18 @@ FAMILIES = {
             "free_amplitude",
             "1/tau_2 = r/tau + d, amplitude per transient",
             (("overlap", "1", 0.0, 25.0), ("extra_rate_per_s", "1/s", -1e6, 2e6)),
+        ),
+        # a transverse mode delta above or below the probed one fills the same gas but samples
+        # the line at nu + delta, with its own mirror/diffraction losses d: 1/tau_2 = 1/tau + d +
+        # c (alpha(nu + delta) - alpha(nu)), alpha the line as fitted (needs TransientSpec.line)
+        (
+            "detuned",
+            "detuned mode: 1/tau_2 = 1/tau + d + c [alpha(nu + delta) - alpha(nu)]",
+            (
+                ("fraction", "1", 0.0, 0.3),
+                ("extra_rate_per_s", "1/s", -1e6, 2e6),
+                ("detuning_hz", "Hz", -2e9, 2e9),
+            ),
         ),
     ),
     "extinction_tail": (
@@ -254,6 +268,9 @@ class TransientSpec:
     window: str | None = None
     tf: TFParams | None = None
     shared: dict = field(default_factory=dict)
+    #: the gas absorption of the line as last fitted (a :class:`LineAbsorption`), or None: lets a
+    #: second mode detuned from the probed one see the line where it sits
+    line: object = None
 
     def has(self, name):
         return name in self.shared
@@ -274,8 +291,9 @@ class TransientSpec:
 class _Columns:
     """Design columns (n rows, k, T samples) of the transient model for given decay times."""
 
-    def __init__(self, t, t_cut_rows, mask, spec: TransientSpec):
+    def __init__(self, t, t_cut_rows, mask, spec: TransientSpec, nu_rows=None):
         self.t, self.mask, self.spec = t, mask, spec
+        self.nu_rows = nu_rows  # optical frequency (Hz) of each row's transient
         self.tp = np.clip(t, 0.0, None)
         self.tf = spec.tf if spec.method == "tf-crds" else None
         if self.tf is not None:
@@ -318,7 +336,12 @@ class _Columns:
         second = None
         if "second_mode" in sh:
             p = sh["second_mode"]
-            if "overlap" in p:
+            if "detuning_hz" in p:
+                # the mode delta away sees the line there: 1/tau_2 = 1/tau + d + c (alpha(nu +
+                # delta) - alpha(nu)), kept positive as below
+                shift = self.spec.line.rate_shift(self.nu_rows[rows], p["detuning_hz"])
+                tau2 = 1.0 / np.maximum(1.0 / tau + p["extra_rate_per_s"] + shift, 1e-2 / tau)
+            elif "overlap" in p:
                 # 1/tau_2 = r/tau + d, kept positive (tau_2 <= 100 tau: a mode cannot gain)
                 tau2 = 1.0 / np.maximum(p["overlap"] / tau + p["extra_rate_per_s"], 1e-2 / tau)
             else:
@@ -495,7 +518,8 @@ def fit_transient_rows(
             converged=fits.converged,
             resid_norm=fits.residuals_v / noise2,
         )
-    cols = _Columns(t, np.asarray(t_cut_rows, float), mask, spec)
+    nu_rows = np.asarray(ringdowns.nu_hz, float)[np.asarray(rows_of)]
+    cols = _Columns(t, np.asarray(t_cut_rows, float), mask, spec, nu_rows)
     if tau_start_s is None:
         base = fit_transients(t, y, t_cut_rows, method="crds", noise_v=noise_rows)
         tau_start_s = base.tau_s
@@ -630,12 +654,7 @@ def optimise_shared(
     warm = {"tau": np.asarray(tau_start_s, float)}
 
     def spec_at(x):
-        return TransientSpec(
-            base.method,
-            base.window,
-            base.tf,
-            {**base.shared, name: dict(zip(names, map(float, x)))},
-        )
+        return replace(base, shared={**base.shared, name: dict(zip(names, map(float, x)))})
 
     def key_of(x):
         x = np.clip(np.asarray(x, float), lo, hi)
@@ -800,6 +819,8 @@ def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
     if start is None:
         raise ValueError(f"the {form} form of {name} starts from the default member's fit")
     start = dict(start)
+    if form == "detuned":
+        return _search_detuned(chi2, names, lo, hi, start)
     if name == "second_mode":
         # the default's tau_2 = tau_ratio tau is r = 1/tau_ratio, d = 0
         start.setdefault("overlap", 1.0 / start["tau_ratio"])
@@ -841,6 +862,36 @@ def _fit_member(name, form, chi2, names, lo, hi, start, ringdowns, resid_norm):
         x = _nelder_mead(
             chi2, x, _member_steps(names, x) if x is not x0 else steps, lo, hi, 40 * x0.size
         )
+        if f_old - chi2(x) < 0.1:
+            break
+    return x
+
+
+#: detunings (Hz) at which the detuned mode's search starts: transverse-mode offsets from tens
+#: of MHz to a GHz, either side (the chi2 has a minimum per side of the line's slope)
+DETUNING_GRID_HZ = tuple(s * d for d in (2e7, 5e7, 1e8, 2e8, 4e8, 8e8) for s in (-1.0, 1.0))
+
+
+def _search_detuned(chi2, names, lo, hi, start) -> np.ndarray:
+    """(fraction, extra rate, detuning) of a detuned second mode minimising ``chi2``.
+
+    Every start of :data:`DETUNING_GRID_HZ`, with the fraction and rate of the default member's
+    fit (its rate d = (1/tau_ratio - 1)/tau is unknown per row; 0 here), is polished by a bounded
+    Nelder-Mead; the best is kept.
+    """
+    fraction = float(np.clip(start.get("fraction", 0.01), 1e-3, 0.2))
+    best = None
+    for det in DETUNING_GRID_HZ:
+        at = {"fraction": fraction, "extra_rate_per_s": 0.0, "detuning_hz": det}
+        x0 = np.array([at[n] for n in names])
+        if best is None or chi2(x0) < best[0]:
+            best = (chi2(x0), x0)
+    x = best[1]
+    scale = {"fraction": 0.5 * fraction, "extra_rate_per_s": 5e3}
+    steps = np.array([scale.get(n, 0.3 * abs(x[names.index(n)])) for n in names])
+    for _ in range(3):
+        f_old = chi2(x)
+        x = _nelder_mead(chi2, x, steps, lo, hi, 120)
         if f_old - chi2(x) < 0.1:
             break
     return x
@@ -888,6 +939,8 @@ def fit_family(
     scores, fits = [], {}
     start = None
     for form, _, pars in FAMILIES[name]:
+        if form == "detuned" and base.line is None:
+            continue  # no line to see from another frequency
         per_row = n_rows * member_row_params(name, form)
         params, res, _ = optimise_shared(
             name,
@@ -934,12 +987,7 @@ def shared_covariance(
     warm = {"tau": np.asarray(tau_start_s, float)}
 
     def chi2(x):
-        spec = TransientSpec(
-            base.method,
-            base.window,
-            base.tf,
-            {**base.shared, name: dict(zip(names, map(float, x)))},
-        )
+        spec = replace(base, shared={**base.shared, name: dict(zip(names, map(float, x)))})
         res = fit_transient_rows(ringdowns, t_cut_rows, rows_of, spec, warm["tau"])
         return float(res.chi2.sum())
 
@@ -1041,6 +1089,40 @@ class SpectrumFit:
     def stderr(self, name):
         i = self.names.index(name)
         return float(np.sqrt(max(self.cov[i, i], 0.0)))
+
+
+@dataclass(frozen=True)
+class LineAbsorption:
+    """The gas absorption alpha(nu) (1/m) of a fitted CRDS line: its profile (and neighbour).
+
+    Baseline, slope and etalon are the cavity's, not the gas's, and are left out. ``rate_shift``
+    gives c (alpha(nu + delta) - alpha(nu)) (1/s): the extra loss rate of a mode delta away.
+    """
+
+    fit: SpectrumFit
+    doppler_hwhm_hz: float
+    nu_ref_hz: float
+
+    def __call__(self, nu_hz):
+        values = dict(zip(self.fit.names, self.fit.values))
+        for name in ("baseline", "slope", "etalon_amplitude_per_m", "etalon2_amplitude_per_m"):
+            if name in values:
+                values[name] = 0.0
+        theta = np.array([values[n] for n in self.fit.names])
+        nu = np.atleast_1d(np.asarray(nu_hz, float))
+        return spectrum_model(
+            theta,
+            self.fit.names,
+            "absorption",
+            self.fit.profile,
+            nu,
+            self.nu_ref_hz,
+            self.doppler_hwhm_hz,
+        )
+
+    def rate_shift(self, nu_hz, detuning_hz):
+        nu = np.asarray(nu_hz, float)
+        return C * (self(nu + detuning_hz) - self(nu))
 
 
 def _names(kind, profile_name, extras):

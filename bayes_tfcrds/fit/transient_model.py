@@ -18,7 +18,12 @@ from bayes_tfcrds.physics.forward import first_index_at
 
 
 def model_transients(
-    time_s: np.ndarray, t_cut_s: float, spec: TransientSpec, tau_s: np.ndarray, coef: np.ndarray
+    time_s: np.ndarray,
+    t_cut_s: float,
+    spec: TransientSpec,
+    tau_s: np.ndarray,
+    coef: np.ndarray,
+    nu_hz: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Model voltage (n, T) of n transients from ``t_cut_s`` on, and the mask of those samples.
 
@@ -35,6 +40,8 @@ def model_transients(
     coef : ndarray (n, k)
         The fit's linear parameters per transient: offset b (V), amplitude B (V) at extinction,
         and the beating amplitudes (V) when ``mode_beating`` is on (``TransientResult.coef``).
+    nu_hz : ndarray (n,), optional
+        Optical frequencies (Hz) of the transients: needed by a detuned second mode only.
 
     Returns
     -------
@@ -47,7 +54,8 @@ def model_transients(
     n = tau.size
     first = first_index_at(t[0], float(t[1] - t[0]), t_cut_s)
     mask = np.broadcast_to(np.arange(t.size)[None, :] >= first, (n, t.size))
-    cols = _Columns(t, np.full(n, float(t_cut_s)), mask, spec)(tau, np.arange(n))
+    nu = None if nu_hz is None else np.asarray(nu_hz, float)
+    cols = _Columns(t, np.full(n, float(t_cut_s)), mask, spec, nu)(tau, np.arange(n))
     k = min(cols.shape[1], coef.shape[1])
     v = np.einsum("nk,nkt->nt", np.asarray(coef, float)[:, :k], cols[:, :k])
     sh = spec.shared

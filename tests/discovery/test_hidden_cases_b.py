@@ -162,17 +162,22 @@ def test_each_builder_changes_what_its_effect_changes(name, tmp_path):
     ],
 )
 def test_discovery_names_an_effect_written_in_another_form(name, seed, right):
-    # second_mode on seed 11: an AC-coupled amplifier beats it by Delta BIC 8.5 on the transients
-    # alone and leaves decay times that no longer make a line (spectrum z 60), settled by the
-    # misfit left in all the data; the chain: an Eq. 2 chain of the other regime needs H and the
-    # extinction window, and nothing else (a veto on worsening the CMDS gap had rejected H, which
-    # moves A away from CMDS until the window follows)
+    # second_mode on seed 11: the mode sees the line 61 MHz away, which the family's detuned
+    # member describes (an AC-coupled amplifier, the nearest other candidate, leaves decay times
+    # that no longer make a line; the misfit left in all the data settles it); the chain: an Eq. 2
+    # chain of the other regime needs H and the extinction window, and nothing else (a veto on
+    # worsening the CMDS gap had rejected H, which moves A away from CMDS until the window
+    # follows)
     builder, start = hb.HIDDEN_CASES_B[name]
     camp = replace(Campaign(), n_points=21, n_samples=4096)
     bundle, _ = builder(np.random.default_rng(seed), camp)
     res = discover(bundle, hb.CONFIG, start, rng=np.random.default_rng(seed))
-    # (the second mode fails with the first acceptable candidate added instead: baseline_drift)
     assert res.effects_added == right, res.effects_added  # named, nothing spurious
+    if name == "second_mode":
+        # named by the family's detuned member, at the mode's offset (61 MHz above TEM00)
+        p = res.steps[0]["params"]
+        assert "detuning_hz" in p, res.steps[0]["form"]
+        assert abs(p["detuning_hz"]["value"] - 61e6) < 4 * p["detuning_hz"]["u"], p
 
 
 @pytest.mark.parametrize("name", ["speed_dependence", "hard_collisions"])

@@ -20,7 +20,9 @@ import pytest
 from scipy.integrate import cumulative_trapezoid
 
 from bayes_tfcrds.bundle.records import RingdownData
+from bayes_tfcrds.core.constants import C
 from bayes_tfcrds.fit.extensions import (
+    LineAbsorption,
     TransientSpec,
     fit_family,
     fit_profile_family,
@@ -390,3 +392,36 @@ def test_line_shape_default_member_kept(effect, default, shape):
     fam = _shape_family(effect, default, *_shape_data(g, 12))
     assert fam.form is None, fam.scores
     _check_spectrum(fam.fit, shape)
+
+
+def test_second_mode_detuned_from_the_probed_one():
+    # a transverse mode delta above the probed one fills the same gas, so it sees the line at
+    # nu + delta, with its own (diffraction) losses: 1/tau_2 = L2 + c alpha(nu + delta). Written
+    # here from a Voigt line; the fit sees the line through a LineAbsorption of its own fit
+    l1, l2, frac, delta = 1.0 / 12e-6, 1.5 / 12e-6, 0.1, 200e6  # 1/s, 1/s, 1, Hz
+    gd, g0, area = 3e8, 3e7, 3.8e5  # Hz, Hz, Hz/m: peak alpha c ~ 1.8e5 1/s
+    nu = np.linspace(-1e9, 1e9, M)
+
+    def alpha(f):
+        return area * profile("voigt", f, 0.0, gd, gamma0_hz=g0).real
+
+    tau, tau2 = 1.0 / (l1 + C * alpha(nu)), 1.0 / (l2 + C * alpha(nu + delta))
+    rd = _record(OFFSET + (1 - frac) * _decay(tau) + frac * _decay(tau2), 12)
+    a = alpha(nu)
+    line = LineAbsorption(
+        fit_spectrum_extended("absorption", nu, a, np.full(M, 1e-3 * a.max()), "voigt", gd, 0.0),
+        gd,
+        0.0,
+    )
+    np.testing.assert_allclose(line(nu), a, rtol=1e-6, atol=1e-9 * a.max())
+    rows, tc = np.arange(M), np.full(M, T_CUT)
+    plain = fit_transient_rows(rd, tc, rows, TransientSpec())
+    base = TransientSpec(line=line)
+    fam = fit_family(
+        "second_mode", rd, tc, rows, base, plain.tau_s, None, float(plain.chi2.sum()), True
+    )
+    assert fam.form == "detuned", fam.scores
+    _check(fam, {"fraction": frac, "extra_rate_per_s": l2 - l1, "detuning_hz": delta})
+    # without a line the member is not offered
+    fam0 = fit_family("second_mode", rd, tc, rows, TransientSpec(), plain.tau_s, None, None)
+    assert "detuned" not in [s[0] for s in fam0.scores]

@@ -107,6 +107,7 @@ def test_galatry_dicke_limit_and_area():
     got = galatry(d, 0.0, GD, G0, 0.0, beta / (2 * np.pi))
     lorentz = (1 / np.pi) / (hw - 1j * d)
     assert _rel(got, lorentz) < 3e-4
+
     # unit area at a moderate rate (Lorentz wings beyond +-100 GHz: 2 Gamma0/(pi 1e11))
     def re(nu):
         return galatry(np.array([nu]), 0.0, GD, G0, D0, 4.6e6)[0].real
