@@ -631,6 +631,7 @@ class Candidate:
     state: ModelState | None
     note: str = ""
     explained: float | None = None  # fraction of its blocks' open misfit removed, when tried
+    tried: bool = False  # evaluated by _choose (explained is None also when nothing was open)
     worsens: tuple = ()  # gaps of the CMDS or beat note its model leaves open and worse, when tried
 
 
@@ -984,7 +985,11 @@ def _start_state(bundle, config, start, t_cuts) -> ModelState:
             bundle,
             config,
             ModelState(
-                ExperimentModel(model.effects - {eff}), dict(state.shared), {}, state.calibration
+                ExperimentModel(model.effects - {eff}),
+                dict(state.shared),
+                {},
+                state.calibration,
+                state.line,
             ),
             t_cuts,
         )
@@ -1255,7 +1260,8 @@ def indistinguishable(best: Candidate, passing: list) -> list:
     """Candidates of ``best``'s data block whose evidence is within :data:`AMBIGUITY_BIC` of its.
 
     Each as {effect, form, evidence}: the step names them beside the effect it adds, which is
-    the one whose model left the least misfit (the data cannot tell them apart).
+    the one whose model left the least misfit (the data cannot tell them apart). A candidate
+    tried and not accepted (it explained too little of the open misfit) is not one.
     """
     return [
         {"effect": c.effect, "form": _form_label(c), "evidence": float(c.evidence)}
@@ -1263,6 +1269,7 @@ def indistinguishable(best: Candidate, passing: list) -> list:
         if c is not best
         and c.block == best.block
         and abs(c.evidence - best.evidence) < AMBIGUITY_BIC
+        and (not c.tried or _accepted(c))
     ]
 
 
@@ -1316,7 +1323,7 @@ def _choose(bundle, config, ev, passing, null, t_cuts, step, say):
     accepted = []
     for c in passing[:MAX_TRIES]:
         new_ev, frac = _explains(bundle, config, ev, c, null, t_cuts, level, next_level)
-        c.explained = frac
+        c.explained, c.tried = frac, True
         c.worsens = tuple(worsened_gaps(ev, new_ev, c.block))
         misfit = total_misfit(new_ev)
         say(

@@ -294,6 +294,7 @@ class _Columns:
     def __init__(self, t, t_cut_rows, mask, spec: TransientSpec, nu_rows=None):
         self.t, self.mask, self.spec = t, mask, spec
         self.nu_rows = nu_rows  # optical frequency (Hz) of each row's transient
+        self._shifts = {}  # detuning (Hz) -> c (alpha(nu + delta) - alpha(nu)) of every row (1/s)
         self.tp = np.clip(t, 0.0, None)
         self.tf = spec.tf if spec.method == "tf-crds" else None
         if self.tf is not None:
@@ -330,6 +331,15 @@ class _Columns:
         out = sfft.irfft(sfft.rfft(x, axis=-1) * self.xh[None, :], n=self.xgrid.n_fft, axis=-1)
         return out[:, self.xcols]
 
+    def _rate_shift(self, detuning_hz) -> np.ndarray:
+        """The detuned mode's extra loss rate at every row (1/s), once per detuning."""
+        key = float(detuning_hz)
+        if key not in self._shifts:
+            if self.spec.line is None or self.nu_rows is None:
+                raise ValueError("a detuned second mode needs the line and the rows' frequencies")
+            self._shifts[key] = self.spec.line.rate_shift(self.nu_rows, key)
+        return self._shifts[key]
+
     def __call__(self, tau, rows):
         sh = self.spec.shared
         g = g_main = self.main(tau, rows)
@@ -339,7 +349,7 @@ class _Columns:
             if "detuning_hz" in p:
                 # the mode delta away sees the line there: 1/tau_2 = 1/tau + d + c (alpha(nu +
                 # delta) - alpha(nu)), kept positive as below
-                shift = self.spec.line.rate_shift(self.nu_rows[rows], p["detuning_hz"])
+                shift = self._rate_shift(p["detuning_hz"])[rows]
                 tau2 = 1.0 / np.maximum(1.0 / tau + p["extra_rate_per_s"] + shift, 1e-2 / tau)
             elif "overlap" in p:
                 # 1/tau_2 = r/tau + d, kept positive (tau_2 <= 100 tau: a mode cannot gain)
@@ -1471,6 +1481,11 @@ def fit_spectrum_family(
     return SpectrumFamilyFit(effect, best[0], best[1], best[2], tuple(scores))
 
 
+#: the other line-shape member replaces the default only when its BIC is lower by more than this:
+#: where the data do not resolve the narrowing both become a Voigt and differ by rounding
+MEMBER_MARGIN_BIC = 2.0
+
+
 def fit_profile_family(
     effect, nu_hz, y, u, default_profile, doppler_hwhm_hz, nu_ref_hz, extras=()
 ) -> SpectrumFamilyFit:
@@ -1478,8 +1493,9 @@ def fit_profile_family(
 
     The default member (``default_profile``: sdvp or rautian) first, then the other member of
     :data:`PROFILE_FORMS` started from it (the power law's exponent from the quadratic's slope at
-    the most probable speed, m = 2 Gamma2/Gamma0; Galatry's rate from Rautian's). The member
-    with the lowest BIC (chi2 + k ln n) is kept.
+    the most probable speed, m = 2 Gamma2/Gamma0; Galatry's rate from Rautian's). The other
+    member is kept when its BIC (chi2 + k ln n) is lower by more than :data:`MEMBER_MARGIN_BIC`;
+    one whose fit fails leaves the default.
     """
     args = ("absorption", nu_hz, y, u)
     fit0 = fit_spectrum_extended(*args, default_profile, doppler_hwhm_hz, nu_ref_hz, extras)
@@ -1494,9 +1510,15 @@ def fit_profile_family(
         if "gamma2_hz" in start:
             ratio = start.pop("gamma2_hz") / max(start["gamma0_hz"], 1e-30)
             start["sd_exponent"] = float(np.clip(2.0 * ratio, 0.02, 1.0))
-        fit1 = fit_spectrum_extended(*args, prof, doppler_hwhm_hz, nu_ref_hz, extras, start=start)
+        try:
+            fit1 = fit_spectrum_extended(
+                *args, prof, doppler_hwhm_hz, nu_ref_hz, extras, start=start
+            )
+        except (ValueError, OverflowError, np.linalg.LinAlgError):
+            continue  # the default member stands
         scores.append((label, fit1.chi2, fit1.k))
-        if fit1.chi2 + fit1.k * np.log(n) < best[2].chi2 + best[2].k * np.log(n):
+        bic0 = best[2].chi2 + best[2].k * np.log(n)
+        if fit1.chi2 + fit1.k * np.log(n) < bic0 - MEMBER_MARGIN_BIC:
             best = (form, label, fit1)
     return SpectrumFamilyFit(effect, best[0], best[1], best[2], tuple(scores))
 

@@ -124,8 +124,9 @@ def speed_averaged(nu_hz, nu0_hz, doppler_hwhm_hz, width, shift, gamma_scale_hz)
     if not gd > 0:
         raise ValueError(f"doppler_hwhm_hz must be > 0, got {doppler_hwhm_hz}")
     nu = np.asarray(nu_hz, float)
-    n_panels = int(max(_X_PANELS_MIN, np.ceil(_X_MAX * gd / (_SQRT_LN2 * gamma_scale_hz))))
-    x, w = _panels(0.0, _X_MAX, min(n_panels, _X_PANELS_MAX))
+    want = np.ceil(_X_MAX * gd / (_SQRT_LN2 * max(float(gamma_scale_hz), 1e-300)))
+    n_panels = int(max(_X_PANELS_MIN, min(want, _X_PANELS_MAX)))
+    x, w = _panels(0.0, _X_MAX, n_panels)
     maxwell = 4.0 / np.sqrt(np.pi) * x * x * np.exp(-x * x)
     kv = (gd / _SQRT_LN2 * x)[None, :]  # (nu0/c) v in Hz
     gam, dlt, wm = width(x)[None, :], shift(x)[None, :], w * maxwell
@@ -139,17 +140,20 @@ def speed_averaged(nu_hz, nu0_hz, doppler_hwhm_hz, width, shift, gamma_scale_hz)
 
 
 def _galatry_doppler(t, kvp, beta):
-    """The Doppler factor of the soft-collision correlation function at times ``t`` (s)."""
-    if beta <= 0:
-        return np.exp(-0.25 * (kvp * t) ** 2)
-    bt = beta * t
-    # beta t - 1 + exp(-beta t), by its series where the difference would cancel
-    g = np.where(
-        bt < 1e-2,
-        bt**2 * (0.5 - bt * (1 / 6 - bt * (1 / 24 - bt * (1 / 120 - bt / 720)))),
-        bt + np.expm1(-np.minimum(bt, 700.0)),
+    """The Doppler factor of the soft-collision correlation function at times ``t`` (s).
+
+    exp(-(k v_p t)^2 h(beta t) / 2), h(x) = (x - 1 + e^-x) / x^2 (h(0) = 1/2: the Gaussian),
+    written with h so that beta -> 0 never divides by beta^2.
+    """
+    t = np.asarray(t, float)
+    x = beta * t
+    xs = np.maximum(x, 1e-2)
+    h = np.where(
+        x < 1e-2,
+        0.5 - x * (1 / 6 - x * (1 / 24 - x * (1 / 120 - x / 720))),
+        (xs + np.expm1(-np.minimum(xs, 700.0))) / (xs * xs),
     )
-    return np.exp(-(kvp**2) / (2.0 * beta**2) * g)
+    return np.exp(-0.5 * (kvp * t) ** 2 * h)
 
 
 def galatry(nu_hz, nu0_hz, doppler_hwhm_hz, gamma0_hz, delta0_hz=0.0, nu_d_hz=0.0):

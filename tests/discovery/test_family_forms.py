@@ -6,7 +6,6 @@ import pytest
 
 from bayes_tfcrds.discovery.views import effect_with_form
 from bayes_tfcrds.discovery.workflow import (
-    AMBIGUITY_BIC,
     Candidate,
     ExperimentModel,
     indistinguishable,
@@ -59,7 +58,11 @@ def test_indistinguishable_candidates_are_named_beside_the_added_one():
     alts = indistinguishable(best, passing)
     assert [a["effect"] for a in alts] == ["hard_collisions"]
     assert abs(alts[0]["evidence"] - 15402.8) < 1e-9
-    assert AMBIGUITY_BIC == 2.0  # Kass and Raftery's "not worth more than a bare mention"
+    # one tried and rejected (it explained too little of the open misfit) is no alternative
+    passing[1].tried, passing[1].explained = True, 0.2
+    assert indistinguishable(best, passing) == []
+    passing[1].explained = 0.9  # tried and accepted: still one
+    assert [a["effect"] for a in indistinguishable(best, passing)] == ["hard_collisions"]
     step = {
         "effect": "speed_dependence",
         "form": "quadratic",
