@@ -824,6 +824,7 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
                 doppler_of(bundle.sample),
                 bundle.sample.nu0_hz,
                 new_model.spectrum_extras,
+                lf_old,
             )
             lf, new_model = fam.fit, model.plus(effect, fam.form)
             note = f"form: {fam.label} (BIC among " + ", ".join(

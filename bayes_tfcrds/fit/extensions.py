@@ -1192,7 +1192,7 @@ _LOWER_BOUNDS = {
     "etalon_amplitude_per_m": 0.0,
     "etalon2_amplitude_per_m": 0.0,
     "neighbour_width_scale": 0.2,
-    "sd_exponent": -0.9,
+    "sd_exponent": -0.5,
 }
 
 
@@ -1294,14 +1294,18 @@ def fit_spectrum_extended(
     default = _default_start(kind, nu_hz, y, doppler_hwhm_hz)
     user_start = start is not None
     start = {**default, **(start or {})}
-    lo = _LOWER_BOUNDS
+    lo = {**_LOWER_BOUNDS, "delta_sd_hz": -0.2 * doppler_hwhm_hz}
     lo_v = np.array([lo.get(n, -np.inf) for n in names])
     span = float(np.ptp(nu_hz))
+    # the power law's exponent: inverse-power potentials r^-q give m = (q - 3)/(q - 1), 0 to 1
+    # for q >= 3, with room either side; its shift's speed-dependent part within a fifth of the
+    # Doppler HWHM (at m -> 0 it has no effect, and unbounded it would wander)
     upper = {
         "etalon_period_hz": 2 * span,
         "neighbour_ratio": 0.5,
         "neighbour_width_scale": 5.0,
-        "sd_exponent": 1.5,
+        "sd_exponent": 1.0,
+        "delta_sd_hz": 0.2 * doppler_hwhm_hz,
     }
     hi_v = np.array([upper.get(n, np.inf) for n in names])
     nonsc = _absolute_scales(doppler_hwhm_hz)
@@ -1487,7 +1491,7 @@ MEMBER_MARGIN_BIC = 2.0
 
 
 def fit_profile_family(
-    effect, nu_hz, y, u, default_profile, doppler_hwhm_hz, nu_ref_hz, extras=()
+    effect, nu_hz, y, u, default_profile, doppler_hwhm_hz, nu_ref_hz, extras=(), before=None
 ) -> SpectrumFamilyFit:
     """Fit the line with ``effect``'s line-shape family (speed dependence or narrowing).
 
@@ -1495,7 +1499,9 @@ def fit_profile_family(
     :data:`PROFILE_FORMS` started from it (the power law's exponent from the quadratic's slope at
     the most probable speed, m = 2 Gamma2/Gamma0; Galatry's rate from Rautian's). The other
     member is kept when its BIC (chi2 + k ln n) is lower by more than :data:`MEMBER_MARGIN_BIC`;
-    one whose fit fails leaves the default.
+    one whose fit fails leaves the default. As for the other families, the other member is tried
+    only where the default beats the line fit without the effect (``before``, a SpectrumFit;
+    Delta BIC > 0): a more flexible shape would otherwise only chase other structure.
     """
     args = ("absorption", nu_hz, y, u)
     fit0 = fit_spectrum_extended(*args, default_profile, doppler_hwhm_hz, nu_ref_hz, extras)
@@ -1503,6 +1509,8 @@ def fit_profile_family(
     label0 = PROFILE_DEFAULT_LABEL[effect]
     scores = [(label0, fit0.chi2, fit0.k)]
     best = (None, label0, fit0)
+    if before is not None and before.chi2 - fit0.chi2 - (fit0.k - before.k) * np.log(n) <= 0:
+        return SpectrumFamilyFit(effect, None, label0, fit0, tuple(scores))
     for form, (eff, label, prof, default) in PROFILE_FORMS.items():
         if eff != effect or default != default_profile:
             continue
