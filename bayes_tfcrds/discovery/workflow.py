@@ -792,40 +792,21 @@ def _try_spectrum_effect(bundle, config, ev: Evaluation, effect) -> Candidate:
     lf_old = ev.lines[0]
     nu = np.asarray(rd.nu_hz, float)[ev.good]
     note = ""
+    profile_family = effect in PROFILE_DEFAULT_LABEL and new_model.profile in ("sdvp", "rautian")
     try:
-        if effect in SPECTRUM_DEFAULT_LABEL:
-            # a family (etalon, neighbour_line): the member with the lowest BIC on the spectrum
+        if effect in SPECTRUM_DEFAULT_LABEL or profile_family:
+            # a family: etalon, neighbour_line, or a line-shape effect alone in the model; the
+            # member with the lowest BIC on the spectrum
             a, ua = absorption_from_tau(ev.tau[:, 0], ev.tau_u[:, 0])
-            fam = fit_spectrum_family(
-                effect,
-                nu,
-                a,
-                ua,
-                model.profile,
-                doppler_of(bundle.sample),
-                bundle.sample.nu0_hz,
-                model.spectrum_extras,
-                lf_old.chi2,
-            )
-            lf, new_model = fam.fit, model.plus(effect, fam.form)
-            note = f"form: {fam.label} (BIC among " + ", ".join(
-                f"{lab}: {c + kk * np.log(lf.n):.1f}" for lab, c, kk in fam.scores
-            )
-            note += ")"
-        elif effect in PROFILE_DEFAULT_LABEL and new_model.profile in ("sdvp", "rautian"):
-            # a line-shape family alone in the model: its default or its other member
-            a, ua = absorption_from_tau(ev.tau[:, 0], ev.tau_u[:, 0])
-            fam = fit_profile_family(
-                effect,
-                nu,
-                a,
-                ua,
-                new_model.profile,
-                doppler_of(bundle.sample),
-                bundle.sample.nu0_hz,
-                new_model.spectrum_extras,
-                lf_old,
-            )
+            gd, nu0 = doppler_of(bundle.sample), bundle.sample.nu0_hz
+            if profile_family:
+                fam = fit_profile_family(
+                    effect, nu, a, ua, new_model.profile, gd, nu0, new_model.spectrum_extras, lf_old
+                )
+            else:
+                fam = fit_spectrum_family(
+                    effect, nu, a, ua, model.profile, gd, nu0, model.spectrum_extras, lf_old.chi2
+                )
             lf, new_model = fam.fit, model.plus(effect, fam.form)
             note = f"form: {fam.label} (BIC among " + ", ".join(
                 f"{lab}: {c + kk * np.log(lf.n):.1f}" for lab, c, kk in fam.scores
