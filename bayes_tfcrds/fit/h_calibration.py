@@ -71,11 +71,19 @@ def beat_note_fit(
     """Fit Eq. 2 to the configuration's beat-note measurement, its phase ambiguity resolved.
 
     The beat note measures |H| only, and |H| nearly repeats itself under A_r -> -A_r/(1 + 2 A_r)
-    (the resonant path subtracting instead of adding): the two modes can fit the beat note
-    equally well while their phase responses, and hence the ring-down distortion, differ by
-    percent-level decay-time biases. When the mirror mode is within MIRROR_DCHI2 of the best
-    beat-note fit, the ring-downs decide: the mode whose TF-CRDS fits of the refinement
-    transients have the lower total chi2 is taken.
+    (the resonant path subtracting instead of adding), and other optima of Eq. 2 on the other
+    side of A_r = 0 (a near-cancelling negative path beside a slow pole) can fit |H| as well.
+    Their phase responses, and hence the ring-down distortion, may differ by percent-level
+    decay-time biases, and the sampled posterior keeps to one sign of A_r (see
+    :class:`~bayes_tfcrds.inference.posteriors.BeatNotePosterior`). So the ring-downs choose the
+    branch: among every optimum within MIRROR_DCHI2 of the best beat-note fit (the best's
+    mirror included), the other sign of A_r is taken, with its best beat-note fit, when its optima
+    fit the refinement transients (total TF-CRDS chi2) better by more than MIRROR_DCHI2 than
+    the best fit's branch does; otherwise the best fit stands (the ring-downs cannot tell the
+    branches apart, and a choice by noise would flip from one seed to the next). Optima of one
+    branch are not ranked by the ring-downs here: the posterior keeps all of them (mode jumps)
+    and the ring-downs weigh them there; an unrefined optimum's ring-down chi2 says little
+    about where that branch's refined H lies. The others stay known as ``alternatives``.
     """
     if config.transfer_function is None:
         raise AnalysisError(
@@ -89,45 +97,71 @@ def beat_note_fit(
             f"/configs/{config.name}/transfer_function: {exc}; check b12_v and b12_u_v "
             "(bayes-tfcrds validate shows the beat note)"
         ) from None
+    if "a_r" not in free or config.ringdowns is None:
+        return best
+    candidates = _beat_candidates(config, best, variant, free)
+    branches = {np.sign(f.params.a_r) for f in candidates}
+    if len(branches) == 1:
+        return best
+    chi2 = np.array([_ringdown_chi2(config.ringdowns, f, window) for f in candidates])
+    signs = np.array([np.sign(f.params.a_r) for f in candidates])
+    own = np.sign(best.params.a_r)
+    if not np.min(chi2[signs != own]) < np.min(chi2[signs == own]) - MIRROR_DCHI2:
+        return best  # the ring-downs do not exclude the best fit's branch: |H| decides
+    chosen = min((f for f, g in zip(candidates, signs) if g != own), key=lambda f: f.chi2)
+    if chosen is best:
+        return best
+    # the other optima of |H| stay known to the sampler (the posterior keeps only this branch)
+    others = tuple(f for f in (best, *best.alternatives) if not same_mode(f, chosen))
+    return replace(chosen, alternatives=others)
+
+
+def _beat_candidates(config, best: TFFit, variant: str, free) -> list:
+    """The beat-note optima |H| cannot reject: ``best``, its alternatives and its mirror.
+
+    Each within MIRROR_DCHI2 of ``best``; one per basin (:func:`same_mode`).
+    """
+    found = [best] + [f for f in best.alternatives if f.chi2 <= best.chi2 + MIRROR_DCHI2]
     a = best.params.a_r
-    if "a_r" not in free or config.ringdowns is None or abs(1 + 2 * a) < 1e-3:
-        return best
-    mirror = replace(best.params, a_r=float(np.clip(-a / (1 + 2 * a), -0.98, 1e4)))
-    try:
-        alt = fit_beat_note(config.transfer_function, variant=variant, free=free, start=mirror)
-    except RuntimeError:
-        return best
-    if abs(alt.params.a_r - a) < 0.05 * max(1.0, abs(a)) or alt.chi2 > best.chi2 + MIRROR_DCHI2:
-        return best
-    rd = config.ringdowns
+    if abs(1 + 2 * a) >= 1e-3:
+        mirror = replace(best.params, a_r=float(np.clip(-a / (1 + 2 * a), -0.98, 1e4)))
+        try:
+            alt = fit_beat_note(config.transfer_function, variant=variant, free=free, start=mirror)
+        except RuntimeError:
+            alt = None
+        if (
+            alt is not None
+            and alt.chi2 <= best.chi2 + MIRROR_DCHI2
+            and not any(same_mode(alt, f) for f in found)
+            and abs(alt.params.a_r - a) >= 0.05 * max(1.0, abs(a))
+        ):
+            found.append(alt)
+    return found
+
+
+def _ringdown_chi2(rd, fit: TFFit, window: str) -> float:
+    """Total chi2 of the TF-CRDS fits of the refinement transients with ``fit``'s H.
+
+    A mode that cannot even fit the ring-downs (tau collapsing, singular) loses outright.
+    """
     idx = select_refinement_points(rd)
     t_cuts = np.asarray(DEFAULT_T_CUTS, float)
     noise = None if rd.fit_noise_v is None else np.asarray(rd.fit_noise_v)[idx]
     rows = np.repeat(np.arange(idx.size), t_cuts.size)
-
-    def ringdown_chi2(fit):
-        # a mode that cannot even fit the ring-downs (tau collapsing, singular) loses outright
-        try:
-            f = fit_transients(
-                rd.time_s,
-                rd.signal_v[idx],
-                np.tile(t_cuts, idx.size),
-                "tf-crds",
-                fit.params,
-                window,
-                noise_v=noise,
-                rows_of=rows,
-            )
-        except (np.linalg.LinAlgError, ValueError, FloatingPointError):
-            return np.inf
-        return float(np.sum(f.chi2)) if np.all(f.converged) else np.inf
-
-    chosen = min((best, alt), key=ringdown_chi2)
-    if chosen is best:
-        return best
-    # the other optima of |H| stay known to the sampler (the posterior keeps only this branch)
-    others = tuple(f for f in (best, *best.alternatives) if not same_mode(f, alt))
-    return replace(alt, alternatives=others)
+    try:
+        f = fit_transients(
+            rd.time_s,
+            rd.signal_v[idx],
+            np.tile(t_cuts, idx.size),
+            "tf-crds",
+            fit.params,
+            window,
+            noise_v=noise,
+            rows_of=rows,
+        )
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError):
+        return np.inf
+    return float(np.sum(f.chi2)) if np.all(f.converged) else np.inf
 
 
 @dataclass(frozen=True)

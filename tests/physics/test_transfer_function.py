@@ -163,3 +163,32 @@ def test_beat_note_phase_ambiguity_is_resolved_by_the_ring_downs():
     chosen = beat_note_fit(cfg, free=BEAT_FREE)
     assert chosen.params.a_r == pytest.approx(draw.tf.a_r, rel=0.1)
     assert chosen.params.f_c_hz == pytest.approx(draw.tf.f_c_hz, rel=0.1)
+
+
+def test_the_ring_downs_choose_the_a_r_branch_among_every_beat_note_optimum():
+    # Campaign 166 of the coverage study (a zoo chain: f_c 1.55 MHz, A_r 0.058 at 115 kHz): the
+    # beat note's best fit is a near-cancelling negative path (A_r ~ -0.9, f_c ~ 0.14 MHz), not
+    # the mirror of the true mode, so a check of the exact mirror alone never asked the
+    # ring-downs, and the posterior was kept to the wrong branch. The ring-downs exclude that
+    # branch by Delta chi2 ~ 900; the chosen fit must be the true mode.
+    from pathlib import Path
+
+    from bayes_tfcrds.fit.beat_note import fit_beat_note
+    from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit
+    from bayes_tfcrds.studies.coverage import settings_of, simulate_draw
+    from bayes_tfcrds.studies.spec import load_study
+
+    settings = settings_of(
+        load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
+    )
+    draw, g_sim, _ = settings.draw(166)
+    bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
+    cfg = next(iter(bundle.configs.values()))
+    best = fit_beat_note(cfg.transfer_function, free=BEAT_FREE)
+    assert best.params.a_r < 0 < draw.tf.a_r  # |H| alone prefers the wrong branch here
+    chosen = beat_note_fit(cfg, free=BEAT_FREE)
+    assert chosen.params.a_r > 0
+    # the beat note's own precision on this mode is ~1 % (f_c) and ~3 % (A_r): 10 % is loose
+    assert chosen.params.f_c_hz == pytest.approx(draw.tf.f_c_hz, rel=0.1)
+    assert chosen.params.a_r == pytest.approx(draw.tf.a_r, rel=0.1)
+    assert any(f.params.a_r < 0 for f in chosen.alternatives)  # the other branch stays known
