@@ -7,9 +7,11 @@ the Bayesian layer compose them.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import stats
 
 from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note, same_mode
 from bayes_tfcrds.fit.noise import NoiseDiagnosis, account_for_noise
@@ -63,6 +65,11 @@ class Calibration:
 
 
 MIRROR_DCHI2 = 9.0  # beat-note chi2 difference below which |H| alone cannot choose (3 sigma)
+# chi2 probability below which the best beat-note fit does not describe the beat note (the
+# z of 5 sigma, one-sided): said, never passed on silently
+BEAT_MISFIT_P = 2.9e-7
+
+log = logging.getLogger(__name__)
 
 
 def beat_note_fit(
@@ -97,6 +104,7 @@ def beat_note_fit(
             f"/configs/{config.name}/transfer_function: {exc}; check b12_v and b12_u_v "
             "(bayes-tfcrds validate shows the beat note)"
         ) from None
+    _warn_misfit(config, best)
     if "a_r" not in free or config.ringdowns is None:
         return best
     candidates = _beat_candidates(config, best, variant, free)
@@ -114,6 +122,26 @@ def beat_note_fit(
     # the other optima of |H| stay known to the sampler (the posterior keeps only this branch)
     others = tuple(f for f in (best, *best.alternatives) if not same_mode(f, chosen))
     return replace(chosen, alternatives=others)
+
+
+def _warn_misfit(config, fit: TFFit) -> None:
+    """Say so when the best beat-note fit leaves chi2 far beyond its degrees of freedom.
+
+    Either Eq. 2 does not describe this chain, or the fit missed the optimum (a very precise beat
+    note makes the optima sharp); either way the H it gives biases every TF-CRDS decay time.
+    """
+    if stats.chi2.sf(fit.chi2, max(fit.dof, 1)) >= BEAT_MISFIT_P:
+        return
+    log.warning(
+        "/configs/%s/transfer_function: the best fit of Eq. 2 to the beat note leaves chi2 = %.4g "
+        "for %d degrees of freedom (chi2_red %.3g): Eq. 2 does not describe this beat note, or the "
+        "fit missed its optimum; every TF-CRDS decay time is biased by the misfit. Check the beat "
+        "note and its uncertainties (bayes-tfcrds validate shows it)",
+        config.name,
+        fit.chi2,
+        fit.dof,
+        fit.chi2_red,
+    )
 
 
 def _beat_candidates(config, best: TFFit, variant: str, free) -> list:

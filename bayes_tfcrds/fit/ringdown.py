@@ -243,13 +243,16 @@ def fit_transients(
     rows_of=None,
     keep_residuals: bool = False,
     tau_start_s=None,
+    warm_start: bool = False,
 ) -> TransientFits:
     """Fit transients; each row r fits ``signal_v[rows_of[r]]`` on t >= ``t_cut_s[r]``.
 
     ``time_s`` (k,) uniformly spaced (s, relative to extinction); ``signal_v`` (m, k) V;
     ``t_cut_s`` (n,) s; ``noise_v`` None, (m,) or (m, k) V; ``rows_of`` (n,) transient index of
     each row (default: row r fits transient r). ``method`` is ``crds`` or ``tf-crds`` (the latter
-    needs ``tf`` and a ``window``).
+    needs ``tf`` and a ``window``). ``tau_start_s`` (n,) seeds the plain-exponential fit that
+    starts a TF-CRDS fit; with ``warm_start`` the TF-CRDS fit starts at it directly (a decay
+    time already known, e.g. the same record's at another t_cut).
     """
     t, sig, t_cut, rows_of, first = _checked_rows(
         time_s, signal_v, t_cut_s, method, tf, window, rows_of
@@ -258,10 +261,32 @@ def fit_transients(
     if noise is None or noise.ndim == 1:
         # one weight per transient: the exponential-sum path, no dense model arrays
         return _fit_one_weight_per_row(
-            t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals, tau_start_s
+            t,
+            sig,
+            t_cut,
+            rows_of,
+            first,
+            method,
+            tf,
+            window,
+            noise,
+            keep_residuals,
+            tau_start_s,
+            warm_start,
         )
     return _fit_per_sample_noise(
-        t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals, tau_start_s
+        t,
+        sig,
+        t_cut,
+        rows_of,
+        first,
+        method,
+        tf,
+        window,
+        noise_v,
+        keep_residuals,
+        tau_start_s,
+        warm_start,
     )
 
 
@@ -292,7 +317,7 @@ def _checked_rows(time_s, signal_v, t_cut_s, method, tf, window, rows_of):
 
 
 def _fit_one_weight_per_row(
-    t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals, tau_start_s
+    t, sig, t_cut, rows_of, first, method, tf, window, noise, keep_residuals, tau_start_s, warm
 ) -> TransientFits:
     """One noise level (or none) per transient.
 
@@ -311,18 +336,22 @@ def _fit_one_weight_per_row(
         if tau_start_s is None
         else np.asarray(tau_start_s, float).copy()
     )
-    tau, conv = _gauss_newton(model, s1, data.sum_wy, tau0)
+    if warm and method == "tf-crds":
+        tau, conv = tau0, np.zeros(n, bool)
+    else:
+        tau, conv = _gauss_newton(model, s1, data.sum_wy, tau0)
     if method == "tf-crds":
         chain = _rational_chain(tf) if window == "extinction" else None
         if chain is not None:
             model = SumsModel(data, chain, t_first, t_cut)
             tau, conv = _gauss_newton(model, s1, data.sum_wy, tau)
         else:
+            # no closed form (fractional n_r, the letter window): dense model arrays; the
+            # amplitude, offset, chi2 and Fisher matrix below come from these sums too
             mask = np.arange(t.size)[None, :] >= first[:, None]
             dense = _TfCrds(t, t_cut, tf, window, mask)
-            tau, conv = _gauss_newton(
-                _dense_sums(dense, sig[rows_of], mask * w[:, None]), s1, data.sum_wy, tau
-            )
+            model = _dense_sums(dense, sig[rows_of], mask * w[:, None])
+            tau, conv = _gauss_newton(model, s1, data.sum_wy, tau)
     else:
         window = None
     sg, sgg, sgy, sd, sdg, sdy, sdd = model(tau, np.arange(n))
@@ -388,7 +417,7 @@ def _fit_one_weight_per_row(
 
 
 def _fit_per_sample_noise(
-    t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals, tau_start_s
+    t, sig, t_cut, rows_of, first, method, tf, window, noise_v, keep_residuals, tau_start_s, warm
 ) -> TransientFits:
     """Per-sample noise: dense model arrays and weights."""
     n = t_cut.size
@@ -403,7 +432,10 @@ def _fit_per_sample_noise(
         if tau_start_s is None
         else np.asarray(tau_start_s, float).copy()
     )
-    tau, conv = _gauss_newton(_dense_sums(crds, y, wm), s1, sy, tau0)
+    if warm and method == "tf-crds":
+        tau, conv = tau0, np.zeros(n, bool)
+    else:
+        tau, conv = _gauss_newton(_dense_sums(crds, y, wm), s1, sy, tau0)
     model = crds
     if method == "tf-crds":
         model = _TfCrds(t, t_cut, tf, window, mask)
@@ -499,6 +531,8 @@ class RingdownFits:
 
     record_end_s: float = np.inf
     saturated: np.ndarray | None = None
+    # fits that did not converge and were then left out (tau NaN): points x t_cuts, or None
+    unconverged: np.ndarray | None = None
     # what the fits were made of, for a look at one transient (:meth:`trace`, :meth:`plot`)
     data: object = field(default=None, repr=False, compare=False)  # the RingdownData fitted
     tf: TFParams | None = None  # H of a tf-crds fit
@@ -612,6 +646,47 @@ class RingdownFits:
         return buf.getvalue()
 
 
+def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) -> None:
+    """Fit again, in place, the TF-CRDS fits that did not converge, from the record's decay time.
+
+    A TF-CRDS fit starts from the plain-exponential fit of the same truncated transient; at a late
+    t_cut behind a slow chain (a resonance of tens of kHz) that start can lie where the profiled
+    chi2 falls towards tau -> 0, and the fit walks there. The record's own decay time, converged
+    at another t_cut (their median), is the right start: TF-CRDS decay times do not depend on
+    t_cut. A refit that does not converge either leaves the entry as it was (unconverged).
+    """
+    failed = ~conv & np.isfinite(out["tau"]) & conv.any(axis=1, keepdims=True)
+    if not failed.any():
+        return
+    i, j = np.nonzero(failed)
+    start = np.array([np.median(out["tau"][r][conv[r]]) for r in i])
+    again = fit_transients(
+        ringdowns.time_s,
+        ringdowns.signal_v,
+        t_cuts[j],
+        method="tf-crds",
+        tf=tf,
+        window=window,
+        noise_v=ringdowns.fit_noise_v,
+        rows_of=i,
+        keep_residuals=resid is not None,
+        tau_start_s=start,
+        warm_start=True,
+    )
+    ok = again.converged
+    for key, arr in (
+        ("tau", again.tau_s),
+        ("tau_u", again.tau_u_s),
+        ("amp", again.amplitude_v),
+        ("off", again.offset_v),
+        ("chi2r", again.chi2_red),
+    ):
+        out[key][i[ok], j[ok]] = arr[ok]
+    conv[i[ok], j[ok]] = True
+    if resid is not None:
+        resid[i[ok], j[ok]] = again.residuals_v[ok]
+
+
 def fit_ringdowns(
     ringdowns,
     t_cuts_s,
@@ -681,6 +756,8 @@ def fit_ringdowns(
         if keep_residuals:
             resid = np.full((m, c, ringdowns.signal_v.shape[1]), np.nan)
             resid[good] = fits.residuals_v.reshape(good.size, c, -1)
+        if method == "tf-crds":
+            _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid)
     return RingdownFits(
         nu_hz=np.asarray(ringdowns.nu_hz),
         t_cut_s=t_cuts,

@@ -413,6 +413,32 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
     )
 
 
+def _converged_only(fits):
+    """``fits`` with the decay times of fits that did not converge set to NaN (left out).
+
+    Every later step (spectra, the sensitivity of A to H, the tau table) skips NaN entries, so an
+    unconverged fit (tau run to 1e-14 s, say) never reaches a line fit. They are counted per t_cut
+    in the fits' ``unconverged`` (points x t_cuts) and reported.
+    """
+    bad = ~fits.converged & np.isfinite(fits.tau_s)
+    if bad.any():
+        log.warning(
+            "%d decay-time fits did not converge and were left out (%s)",
+            int(bad.sum()),
+            ", ".join(
+                f"{int(n)} at t_cut {tc * 1e6:g} us"
+                for tc, n in zip(fits.t_cut_s, bad.sum(axis=0))
+                if n
+            ),
+        )
+    return replace(
+        fits,
+        tau_s=np.where(bad, np.nan, fits.tau_s),
+        tau_u_s=np.where(bad, np.nan, fits.tau_u_s),
+        unconverged=bad,
+    )
+
+
 def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     """Step 2.
 
@@ -421,8 +447,10 @@ def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
     """
     options, gd, nu_ref = inp.options, inp.gd, inp.nu_ref
     t_cuts = np.asarray(sorted(set(options.t_cuts_s) | {options.t_cut_s}), float)
-    fits = fit_ringdowns(
-        inp.config.ringdowns, t_cuts, method=options.method, tf=h_star, window=options.window
+    fits = _converged_only(
+        fit_ringdowns(
+            inp.config.ringdowns, t_cuts, method=options.method, tf=h_star, window=options.window
+        )
     )
     j0 = int(np.nonzero(np.isclose(t_cuts, options.t_cut_s))[0][0])
     spectra = [
@@ -1059,6 +1087,10 @@ def _summary(
         },
         "a_by_t_cut": {
             f"{k * 1e6:g}us": float(line_area_to_cm2(v)) for k, v in dt.area_by_tcut.items()
+        },
+        # fits that did not converge, left out of every spectrum (per t_cut, all points)
+        "unconverged_decay_times": {
+            f"{tc * 1e6:g}us": int(n) for tc, n in zip(dt.t_cuts, dt.fits.unconverged.sum(axis=0))
         },
         "sensitivities_hz_per_m": {k: float(v) for k, v in sens_a.items()},
         "h_propagation": (

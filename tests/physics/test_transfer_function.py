@@ -192,3 +192,27 @@ def test_the_ring_downs_choose_the_a_r_branch_among_every_beat_note_optimum():
     assert chosen.params.f_c_hz == pytest.approx(draw.tf.f_c_hz, rel=0.1)
     assert chosen.params.a_r == pytest.approx(draw.tf.a_r, rel=0.1)
     assert any(f.params.a_r < 0 for f in chosen.alternatives)  # the other branch stays known
+
+
+def test_a_beat_note_that_eq2_cannot_fit_is_said(caplog):
+    # A beat-note fit with chi2_red ~ 1e6 (the fit missed the optimum of a very precise beat
+    # note, or the chain is not Eq. 2) biased every decay time without a word.
+    import logging
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from bayes_tfcrds.fit.h_calibration import beat_note_fit
+
+    f = np.logspace(3, np.log10(4e7), 60)
+    u = 1e-4 * np.ones_like(f)
+    good = np.abs(transfer_function(f, LETTER_LIKE)) + u * np.random.default_rng(1).standard_normal(
+        f.size
+    )
+    notch = good * (1.0 - 0.5 * np.exp(-0.5 * (np.log(f / 3e5) / 0.1) ** 2))  # not an Eq. 2 |H|
+    for h, said in ((good, False), (notch, True)):
+        cfg = SimpleNamespace(name="X", transfer_function=_BeatNote(f, h, u), ringdowns=None)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="bayes_tfcrds.fit.h_calibration"):
+            beat_note_fit(cfg)
+        assert ("does not describe this beat note" in caplog.text) is said

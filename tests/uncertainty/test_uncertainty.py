@@ -121,3 +121,37 @@ def test_noise_row_matches_the_noise_only_scatter():
         np.mean(rep.u_noise),
         np.mean(rep.u_stat),
     )
+
+
+def test_unconverged_decay_times_never_reach_a_line_fit():
+    # An unconverged fit (tau run to 1e-14 s) made `budget` crash in its line fit, or, at another
+    # t_cut, enter the t_cut row with A wrong by 100 %. The budget leaves such fits out (NaN,
+    # which every spectrum and the tau table skip) and counts them.
+    import numpy as np
+
+    from bayes_tfcrds.fit.ringdown import RingdownFits
+    from bayes_tfcrds.fit.spectrum import crds_spectrum
+    from bayes_tfcrds.uncertainty.line_budget import _converged_only
+
+    tau = np.array([[3e-6, 3e-6], [4e-6, 3e-14], [5e-6, 5e-6]])
+    conv = np.array([[True, True], [True, False], [True, True]])
+    fits = RingdownFits(
+        nu_hz=1.9e14 + 2e8 * np.arange(3.0),  # three cavity modes, one FSR apart
+        t_cut_s=np.array([2e-6, 8e-6]),
+        tau_s=tau,
+        tau_u_s=np.full_like(tau, 1e-9),
+        amplitude_v=np.ones_like(tau),
+        offset_v=np.zeros_like(tau),
+        chi2_red=np.ones_like(tau),
+        converged=conv,
+        clipped=np.zeros(3, bool),
+        method="tf-crds",
+        window="extinction",
+        noise_estimated=False,
+    )
+    kept = _converged_only(fits)
+    assert np.isnan(kept.tau_s[1, 1]) and np.isnan(kept.tau_u_s[1, 1])
+    np.testing.assert_array_equal(kept.unconverged, ~conv)
+    assert kept.tau_s[1, 0] == 4e-6  # the same record's converged fit stays
+    spec = crds_spectrum(kept.nu_hz, kept.tau_s[:, 1], kept.tau_u_s[:, 1])
+    np.testing.assert_array_equal(spec.nu_hz, kept.nu_hz[[0, 2]])
