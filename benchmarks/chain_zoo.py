@@ -120,7 +120,8 @@ def _table(records) -> str:
             f"| {r['index']} | {r['regime']} | {c['f_c_hz']:.3g} | {c['a_r']:.3g} | "
             f"{c['f_r_hz']:.3g} | {c['gamma_r']:.2f} | {r['status']} | "
             f"{r['tau_within_2u']}/{r['n_points']} | {r['tau_pull_sd']:.2f} | {r['a_pull']:+.2f} | "
-            f"{100 * r['a_rel_u']:.3f} % | {r['f_c_z']:+.2f} | {r['seconds']:.0f} |"
+            f"{100 * r['a_rel_u']:.3f} % | "
+            f"{'-' if r['f_c_z'] is None else format(r['f_c_z'], '+.2f')} | {r['seconds']:.0f} |"
         )
     return "\n".join(lines)
 
