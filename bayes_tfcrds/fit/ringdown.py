@@ -258,36 +258,11 @@ def fit_transients(
         time_s, signal_v, t_cut_s, method, tf, window, rows_of
     )
     noise = None if noise_v is None else np.asarray(noise_v, float)
-    if noise is None or noise.ndim == 1:
-        # one weight per transient: the exponential-sum path, no dense model arrays
-        return _fit_one_weight_per_row(
-            t,
-            sig,
-            t_cut,
-            rows_of,
-            first,
-            method,
-            tf,
-            window,
-            noise,
-            keep_residuals,
-            tau_start_s,
-            warm_start,
-        )
-    return _fit_per_sample_noise(
-        t,
-        sig,
-        t_cut,
-        rows_of,
-        first,
-        method,
-        tf,
-        window,
-        noise_v,
-        keep_residuals,
-        tau_start_s,
-        warm_start,
-    )
+    # one weight per transient: the exponential-sum path, no dense model arrays
+    one_weight = noise is None or noise.ndim == 1
+    fit = _fit_one_weight_per_row if one_weight else _fit_per_sample_noise
+    args = (t, sig, t_cut, rows_of, first, method, tf, window)
+    return fit(*args, noise if one_weight else noise_v, keep_residuals, tau_start_s, warm_start)
 
 
 def _checked_rows(time_s, signal_v, t_cut_s, method, tf, window, rows_of):
@@ -646,6 +621,17 @@ class RingdownFits:
         return buf.getvalue()
 
 
+def _per_fit_arrays(fits) -> dict:
+    """A TransientFits' per-row results under fit_ringdowns' names."""
+    return {
+        "tau": fits.tau_s,
+        "tau_u": fits.tau_u_s,
+        "amp": fits.amplitude_v,
+        "off": fits.offset_v,
+        "chi2r": fits.chi2_red,
+    }
+
+
 def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) -> None:
     """Fit again, in place, the TF-CRDS fits that did not converge, from the record's decay time.
 
@@ -674,13 +660,7 @@ def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) ->
         warm_start=True,
     )
     ok = again.converged
-    for key, arr in (
-        ("tau", again.tau_s),
-        ("tau_u", again.tau_u_s),
-        ("amp", again.amplitude_v),
-        ("off", again.offset_v),
-        ("chi2r", again.chi2_red),
-    ):
+    for key, arr in _per_fit_arrays(again).items():
         out[key][i[ok], j[ok]] = arr[ok]
     conv[i[ok], j[ok]] = True
     if resid is not None:
@@ -743,13 +723,7 @@ def fit_ringdowns(
             rows_of=rows_of,
             keep_residuals=keep_residuals,
         )
-        for key, arr in (
-            ("tau", fits.tau_s),
-            ("tau_u", fits.tau_u_s),
-            ("amp", fits.amplitude_v),
-            ("off", fits.offset_v),
-            ("chi2r", fits.chi2_red),
-        ):
+        for key, arr in _per_fit_arrays(fits).items():
             out[key][good] = arr.reshape(good.size, c)
         conv[good] = fits.converged.reshape(good.size, c)
         est = fits.noise_estimated
