@@ -37,7 +37,10 @@ def test_budget_passes_and_keeps_every_draw_physical(pole_budget):
         lo, hi = SUPPORT[name]
         assert np.all((draws[:, i] > lo) & (draws[:, i] < hi)), name
     ref = res.summary["transfer_function"]["refinement"]
-    assert np.isfinite(ref["parameters"]["f_c_hz"]["z"]) and ref["converged"]
+    # a fast pole: the ring-downs may hold under 1 % of f_c's information, and then no tension
+    # test is made (z None); where one is made it is a number
+    z = ref["parameters"]["f_c_hz"]["z"]
+    assert (z is None or np.isfinite(z)) and ref["converged"]
     assert res.summary["diagnostics"]["h_ring_down_weights"]["passed"]
 
 
