@@ -341,9 +341,9 @@ def analyse_line(
     except AnalysisError as exc:
         raise LineFitError(str(exc)) from exc
     # a decay time whose fit did not converge is not a measurement: left out and counted
-    unconverged = ~fits.converged[:, 0] & np.isfinite(fits.tau_s[:, 0])
-    tau = np.where(unconverged, np.nan, fits.tau_s[:, 0])
-    spec = crds_spectrum(fits.nu_hz, tau, fits.tau_u_s[:, 0])
+    kept = fits.converged_only()
+    unconverged = kept.unconverged[:, 0]
+    spec = crds_spectrum(kept.nu_hz, kept.tau_s[:, 0], kept.tau_u_s[:, 0])
     if spec.nu_hz.size < 8:
         raise LineFitError(
             f"only {spec.nu_hz.size} usable decay times in configuration {config.name!r}"

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import csv
 import io
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -511,6 +511,20 @@ class RingdownFits:
     # what the fits were made of, for a look at one transient (:meth:`trace`, :meth:`plot`)
     data: object = field(default=None, repr=False, compare=False)  # the RingdownData fitted
     tf: TFParams | None = None  # H of a tf-crds fit
+
+    def converged_only(self) -> RingdownFits:
+        """These fits with the decay times of fits that did not converge set to NaN (left out).
+
+        A decay time whose fit did not converge (run to 1e-14 s, say) is not a measurement;
+        spectra and tables skip NaN entries. ``unconverged`` (points x t_cuts) marks them.
+        """
+        bad = ~self.converged & np.isfinite(self.tau_s)
+        return replace(
+            self,
+            tau_s=np.where(bad, np.nan, self.tau_s),
+            tau_u_s=np.where(bad, np.nan, self.tau_u_s),
+            unconverged=bad,
+        )
 
     def trace(self, i: int, j: int = 0) -> dict:
         """Transient ``i`` at t_cut index ``j``: time (s), signal, fitted model and residual (V).

@@ -414,13 +414,13 @@ def _inputs(bundle, config, options, rng, outdir, progress) -> _Inputs:
 
 
 def _converged_only(fits):
-    """``fits`` with the decay times of fits that did not converge set to NaN (left out).
+    """``fits.converged_only()``: unconverged decay times left out of every later step, said.
 
     Every later step (spectra, the sensitivity of A to H, the tau table) skips NaN entries, so an
-    unconverged fit (tau run to 1e-14 s, say) never reaches a line fit. They are counted per t_cut
-    in the fits' ``unconverged`` (points x t_cuts) and reported.
+    unconverged fit never reaches a line fit; ``unconverged`` counts them per t_cut.
     """
-    bad = ~fits.converged & np.isfinite(fits.tau_s)
+    kept = fits.converged_only()
+    bad = kept.unconverged
     if bad.any():
         log.warning(
             "%d decay-time fits did not converge and were left out (%s)",
@@ -431,12 +431,7 @@ def _converged_only(fits):
                 if n
             ),
         )
-    return replace(
-        fits,
-        tau_s=np.where(bad, np.nan, fits.tau_s),
-        tau_u_s=np.where(bad, np.nan, fits.tau_u_s),
-        unconverged=bad,
-    )
+    return kept
 
 
 def _decay_times(inp: _Inputs, h_star) -> _DecayTimes:
