@@ -488,9 +488,16 @@ def cmd_budget(args) -> int:
             else "the budget keeps n_r = 2 (the fit lies outside the causal n_r < 2) and carries "
             "the difference"
         )
+        both = (
+            f", the ring-downs with it n_r = {form['n_r_refined']:.4f} +/- "
+            f"{form['n_r_refined_u']:.4f}"
+            if "n_r_refined" in form
+            else ""
+        )
         _say(
-            f"finding: the beat note asks for a fractional order n_r = {form['n_r_free_fit']:.3f} "
-            f"(BIC weight {form['weight_n_r_free']:.3g}); {kept} in A as the 'H model form' row"
+            f"finding: the data ask for a fractional order (weight of n_r free "
+            f"{form['weight_n_r_free_all_data']:.3g} from the {form['weight_source']}; beat note "
+            f"alone n_r = {form['n_r_free_fit']:.3f}{both}); {kept} in A as the 'H model form' row"
         )
     for name, detail in (res.summary.get("instrument") or {}).items():
         if detail.get("finding"):

@@ -17,7 +17,7 @@ from bayes_tfcrds.fit.beat_note import TFFit, fit_beat_note, same_mode
 from bayes_tfcrds.fit.noise import NoiseDiagnosis, account_for_noise
 from bayes_tfcrds.fit.refine import HPrior, RefinedTF, refine_transfer_function
 from bayes_tfcrds.fit.ringdown import RingdownFits, fit_ringdowns, fit_transients
-from bayes_tfcrds.physics.transfer_function import TFParams
+from bayes_tfcrds.physics.transfer_function import SUPPORT, TFParams
 
 DEFAULT_T_CUTS = (2e-6, 3e-6, 4e-6, 5e-6, 6e-6, 8e-6)  # the letter's truncation times, s
 BEAT_FREE = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")  # n_r = 2 keeps the chain rational (causal)
@@ -246,6 +246,32 @@ def h_model_forms(config, beat: TFFit) -> HModelForms:
     return HModelForms(
         bic(beat), bic(free_fit), float(1.0 / (1.0 + np.exp(np.clip(d, -700, 700) / 2))), free_fit
     )
+
+
+def free_order_weight(forms: HModelForms, beat_2: TFFit, refined_2, refined_free) -> float:
+    """Weight of the n_r-free form from the beat note and the ring-downs together.
+
+    ``refined_2`` and ``refined_free`` (:class:`RefinedTF`) are the two forms updated on the same
+    records, the second with n_r among its refined parameters. Laplace's approximation of the
+    Bayes factor of the nested forms (Kass & Raftery 1995, Sec. 4.1):
+    ln B = -Delta/2 + ln(sqrt(2 pi) u(n_r) / width), with Delta the difference of -2 ln L of all
+    the data at the two optima (beat-note chi2 at its optimum, plus the beat note's Gaussian
+    term and the ring-downs' composite chi2 at the update, both forms with one adjustment w),
+    u(n_r) the posterior sd of n_r from all the data and n_r uniform over SUPPORT["n_r"] a priori.
+    The beat note alone (``forms.weight_free``, BIC) cannot see what the ring-downs know: on a
+    weak slow resonance it leaves n_r loose, and the ring-downs pin it. Returns 1/(1 + 1/B).
+    """
+    w = refined_2.weight  # one composite adjustment for both: the chi2 differ, not the weights
+    delta = (
+        (forms.free_fit.chi2 - beat_2.chi2)
+        + w * (refined_free.chi2 - refined_2.chi2)
+        + (refined_free.prior_chi2 - refined_2.prior_chi2)
+    )
+    lo, hi = SUPPORT["n_r"]
+    i = refined_free.free.index("n_r")
+    spread = min(np.sqrt(2 * np.pi * refined_free.cov[i, i]), hi - lo)  # Occam factor <= 1
+    ln_b = -0.5 * delta + np.log(spread / (hi - lo))
+    return float(1.0 / (1.0 + np.exp(np.clip(-ln_b, -700, 700))))
 
 
 def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np.ndarray:

@@ -196,6 +196,7 @@ class RefinedTF:
     prior_cov: np.ndarray | None = None
     z: np.ndarray | None = None
     cov_sample: np.ndarray | None = None
+    prior_chi2: float = 0.0  # (phi - mu)' P (phi - mu) at the optimum: the beat note's part
     layout: object = field(default=None, repr=False)  # the refinement data (composite rows)
     likelihood_layout: object = field(default=None, repr=False)  # each sample once, if it exists
 
@@ -635,8 +636,10 @@ def refine_transfer_function(
     # correlate the refinement's noise with other uses of the same records
     influence = jac[None, :, None] * np.einsum("pq,mqk->mpk", p_inv, w * jac[None, :, None] * score)
     z = prior_mean = prior_cov = None
+    prior_chi2 = 0.0
     if prior is not None:
         phi = to_sample(free, tf.as_vector(free))
+        prior_chi2 = float((phi - mu) @ info @ (phi - mu))
         has = np.diag(info) > 0
         c_prior = np.zeros_like(info)
         if has.any():
@@ -680,6 +683,7 @@ def refine_transfer_function(
         prior_cov=prior_cov,
         z=z,
         cov_sample=cov_s,
+        prior_chi2=prior_chi2,
         layout=layout,
         likelihood_layout=likelihood_layout,
     )

@@ -53,8 +53,10 @@ from bayes_tfcrds.fit.h_calibration import (
     BEAT_FREE,
     DEFAULT_T_CUTS,
     AnalysisError,
+    HModelForms,
     account_for_noise_colour,
     beat_note_fit,
+    free_order_weight,
     h_model_forms,
     refine_on_records,
 )
@@ -778,68 +780,144 @@ def consistent_correlations(r_noise: dict, refd, rc) -> dict:
 FORM_WEIGHT_MIN = 1e-4  # BIC weight below which the other H form is not even evaluated
 
 
-def _h_forms(inp: _Inputs):
-    """Step 1a: Eq. 2 with n_r = 2 and with n_r free on the beat note, and the form to sample.
+@dataclass(frozen=True)
+class _FormChoice:
+    """Eq. 2 with n_r = 2 against n_r free (step 1a), and the form the budget samples.
 
-    n_r is sampled (the beat-note posterior over BEAT_FREE + n_r, started from the n_r-free fit)
-    when the options allow it, the beat note asks for a free order (BIC weight > 1/2) and that
-    fit lies inside the posterior's causal support (H_PRIOR: n_r < 2); else n_r = 2, as a
-    rational chain. Returns (HModelForms, the n_r = 2 fit, the fit whose form is sampled).
+    ``beat_2`` the n_r = 2 beat-note fit; ``sampled`` the beat-note fit whose form is sampled;
+    ``weight_free`` the weight of the n_r-free form (from the beat note and the ring-downs where
+    both forms were updated, ``updates`` = (n_r = 2, n_r free) RefinedTF; else the beat note's
+    BIC weight, ``updates`` None); ``record`` what budget.json says of it.
+    """
+
+    forms: HModelForms
+    beat_2: object
+    sampled: object
+    weight_free: float
+    updates: tuple | None
+    record: dict
+
+    @property
+    def n_r_sampled(self) -> bool:
+        return self.sampled is not self.beat_2
+
+
+def _form_update(inp: _Inputs, beat, free: tuple):
+    """The ring-down update of one form of H (its beat-note TFFit ``beat``); None if it fails."""
+    options = inp.options
+    try:
+        r = refine_on_records(
+            inp.config,
+            beat.params,
+            free,
+            options.window,
+            options.t_cuts_s,
+            options.n_refine_points,
+            HPrior.from_beat(beat),
+        )[0]
+    except (AnalysisError, ValueError, np.linalg.LinAlgError) as exc:
+        log.info("H model form: the update of %s failed (%s)", free, exc)
+        return None
+    return r if r.converged else None
+
+
+def _form_updates(inp: _Inputs, forms: HModelForms, beat_2):
+    """Both forms updated on the same records over every H parameter the beat note fitted.
+
+    n_r is among them in the free form; the beat note as prior keeps a parameter the ring-downs
+    do not constrain where it puts it. Updating only some parameters would let n_r absorb the
+    others' misfit and make a form difference out of it. Returns (r_2, r_free) or None when
+    the options ask for no refinement or an update fails.
+    """
+    if not inp.options.refine_free:
+        return None
+    r_2 = _form_update(inp, beat_2, tuple(beat_2.free))
+    r_f = None if r_2 is None else _form_update(inp, forms.free_fit, tuple(beat_2.free) + ("n_r",))
+    return None if r_f is None else (r_2, r_f)
+
+
+def _h_forms(inp: _Inputs) -> _FormChoice:
+    """Step 1a: Eq. 2 with n_r = 2 and with n_r free, weighed by the data, and the form to sample.
+
+    Each form is fitted to the beat note (:func:`h_model_forms`). Unless the beat note alone
+    settles it (BIC weight of either form below FORM_WEIGHT_MIN), both are updated by the
+    ring-downs (:func:`_form_updates`) and weighed by all the data (:func:`free_order_weight`);
+    the beat note alone cannot see what the ring-downs know, and on a weak slow resonance it
+    leaves n_r loose. n_r is sampled (the beat-note posterior over BEAT_FREE + n_r, started from
+    the n_r-free fit) when the options allow it, the data ask for a free order (weight > 1/2)
+    and that fit lies inside the posterior's causal support (H_PRIOR: n_r < 2); else n_r = 2, as
+    a rational chain.
     """
     beat = inp.beat
     if beat is None:
         beat = beat_note_fit(inp.config, free=BEAT_FREE, window=inp.options.window)
     forms = h_model_forms(inp.config, beat)
+    w_free, updates = forms.weight_free, None
+    record = {"weight_source": "beat note alone (BIC): it settles the form"}
+    if forms.free_fit is not None and FORM_WEIGHT_MIN < w_free < 1.0 - FORM_WEIGHT_MIN:
+        updates = _form_updates(inp, forms, beat)
+        if updates is None:
+            record = {"weight_source": "beat note alone (BIC): no ring-down update of both forms"}
+        else:
+            r_2, r_f = updates
+            w_free = free_order_weight(forms, beat, r_2, r_f)
+            i = r_f.free.index("n_r")
+            record = {
+                "weight_source": "beat note and ring-downs (Laplace evidence)",
+                "n_r_refined": float(r_f.params.n_r),
+                "n_r_refined_u": float(np.sqrt(r_f.cov[i, i])),
+                "updated": list(r_f.free),
+            }
     lo, hi = H_PRIOR["n_r"]
-    free = (
-        inp.options.free_order and forms.asks_for_free_order and lo < forms.free_fit.params.n_r < hi
-    )
-    return forms, beat, forms.free_fit if free else beat
+    free = inp.options.free_order and w_free > 0.5 and lo < forms.free_fit.params.n_r < hi
+    record["weight_n_r_free_all_data"] = w_free
+    return _FormChoice(forms, beat, forms.free_fit if free else beat, w_free, updates, record)
 
 
-def _h_model_form(inp: _Inputs, dt: _DecayTimes, forms, beat_2, refined, n_r_sampled: bool):
+def _form_area(inp: _Inputs, h) -> float:
+    """The line area (Hz/m) from the decay times at t_cut with the transfer function ``h``."""
+    options = inp.options
+    f = fit_ringdowns(inp.config.ringdowns, [options.t_cut_s], "tf-crds", h, options.window)
+    spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
+    return fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area
+
+
+def _h_model_form(inp: _Inputs, choice: _FormChoice, n_r_sampled: bool):
     """Step 6b: the H model-form row (Eq. 2 with n_r = 2 against n_r free), sized by the data.
 
-    The form not sampled (its beat-note fit ``beat_2`` or ``forms.free_fit``, the same ring-down
-    update, decay times and line fit) enters with its BIC weight w: u = sqrt(w) |A_other - A|, the
-    between-model sd about the form used. A form the beat note rejects (w -> 0) contributes
-    nothing. Returns (Component, record).
+    The two forms (updated by the ring-downs alike where ``choice`` has the updates, else at
+    their beat-note fits) give A; the form not sampled enters with its weight w:
+    u = sqrt(w) |A_other - A_used|, the between-model sd about the form used, with the
+    difference taken between the two forms alone. A form the data reject (w -> 0) contributes
+    nothing; one the beat note alone rejects (w < FORM_WEIGHT_MIN) is not even evaluated.
+    Returns (Component, record).
     """
-    options = inp.options
-    alt = beat_2 if n_r_sampled else forms.free_fit
-    w = 1.0 - forms.weight_free if n_r_sampled else forms.weight_free
-    a_alt = None
-    if alt is not None and w > FORM_WEIGHT_MIN:
-        # the same update, of the parameters that form has (n_r stays at 2 in the n_r = 2 form)
-        free = tuple(n for n in refined.free if n in alt.free) if refined is not None else ()
-        rd = inp.config.ringdowns
-        h_alt = alt.params
-        if free:
-            h_alt = refine_on_records(
-                inp.config,
-                alt.params,
-                free,
-                options.window,
-                options.t_cuts_s,
-                options.n_refine_points,
-                HPrior.from_beat(alt),
-            )[0].params
-        f = fit_ringdowns(rd, [options.t_cut_s], "tf-crds", h_alt, options.window)
-        spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
-        a_alt = fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area
-    u = 0.0 if a_alt is None else float(np.sqrt(w) * abs(a_alt - dt.lsq.line_area))
-    a_used = dt.lsq.line_area
-    record = {
-        "bic_n_r_2": forms.bic_fixed,
-        "bic_n_r_free": forms.bic_free,
-        "weight_n_r_free": forms.weight_free,
-        "n_r_free_fit": None if forms.free_fit is None else forms.free_fit.params.n_r,
-        "a_n_r_free_hz_per_m": a_used if n_r_sampled else a_alt,
-        "a_n_r_2_hz_per_m": a_alt if n_r_sampled else a_used,
-        "asks_for_free_order": forms.asks_for_free_order,
-        "form_sampled": "n_r free" if n_r_sampled else "n_r = 2",
-    }
+    forms = choice.forms
+    w_free = choice.weight_free
+    w = 1.0 - w_free if n_r_sampled else w_free
+    d_a = None
+    record = dict(choice.record)
+    if forms.free_fit is not None and w > FORM_WEIGHT_MIN:
+        if choice.updates is None:
+            h_2, h_f = choice.beat_2.params, forms.free_fit.params
+        else:
+            h_2, h_f = (r.params for r in choice.updates)
+        a_2, a_f = _form_area(inp, h_2), _form_area(inp, h_f)
+        d_a = a_2 - a_f if n_r_sampled else a_f - a_2
+        record.update(a_n_r_2_hz_per_m=a_2, a_n_r_free_hz_per_m=a_f)
+    u = 0.0 if d_a is None else float(np.sqrt(w) * abs(d_a))
+    record.update(
+        bic_n_r_2=forms.bic_fixed,
+        bic_n_r_free=forms.bic_free,
+        weight_n_r_free=forms.weight_free,
+        n_r_free_fit=None if forms.free_fit is None else forms.free_fit.params.n_r,
+        asks_for_free_order=w_free > 0.5,
+        form_sampled="n_r free" if n_r_sampled else "n_r = 2",
+        row_weight=w,
+        a_other_minus_a_used_hz_per_m=d_a,
+    )
     used, other = ("n_r free", "n_r = 2") if n_r_sampled else ("n_r = 2", "n_r free")
+    source = record["weight_source"].split(" (")[0]
     comp = Component(
         "H model form (Eq. 2: n_r = 2 vs n_r free)",
         None,
@@ -847,8 +925,9 @@ def _h_model_form(inp: _Inputs, dt: _DecayTimes, forms, beat_2, refined, n_r_sam
         1.0,
         "Hz/m",
         dof=dof_from_relative_u(REL_U_ONE_DIFFERENCE),
-        note=f"from the data: BIC weight of {other} on the beat note w = {w:.3g}; "
-        f"u = sqrt(w) |A({other}) - A({used})|; dof 2: u judged reliable to 50 % (GUM G.4.2)",
+        note=f"from the data: weight of {other} from the {source} w = {w:.3g}; "
+        f"u = sqrt(w) |A({other}) - A({used})|, both forms updated alike; "
+        "dof 2: u judged reliable to 50 % (GUM G.4.2)",
     )
     return comp, record
 
@@ -1356,7 +1435,8 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
     h_star = h_draws = refined = h_parts = beat = None
     names = BEAT_FREE  # the sampled H parameters (n_r too when the beat note asks for it)
     if tf:  # 1. H
-        forms, beat_2, beat = _h_forms(inp)
+        choice = _h_forms(inp)
+        beat = choice.sampled
         beat, refined, h_star, h_draws, h_run, h_parts = h_posterior(
             config, options, inp.streams["h"], inp.chain_file("h"), inp.progress, beat
         )
@@ -1371,9 +1451,7 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
     instrument_job = side.submit(
         instrument_rows, config, options, h_star, dt.spec, inp.gd, inp.nu_ref
     )  # 6c.
-    form_job = (
-        side.submit(_h_model_form, inp, dt, forms, beat_2, refined, "n_r" in names) if tf else None
-    )  # 6b.
+    form_job = side.submit(_h_model_form, inp, choice, "n_r" in names) if tf else None  # 6b.
     tau_job = side.submit(_tau_table, inp, dt, h_star, h_draws, names)  # 11.
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     clock.done("line posterior")

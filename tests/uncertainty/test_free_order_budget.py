@@ -92,3 +92,39 @@ def test_a_rational_chain_keeps_n_r_2_and_todays_numbers(preset):
     for key in ("line_area", "intensity", "ratio", "components", "sensitivities_hz_per_m"):
         assert on.summary[key] == off.summary[key], key
     np.testing.assert_array_equal(on.samples["a_total"], off.samples["a_total"])
+
+
+# the zoo's pole regime: a fast main pole beside a weak slow resonance, n_r = 2 (an independent
+# simulator's bundle of this kind had its u(A) made 99 % of this row, ten times its real error)
+WEAK_SLOW = TFParams(f_c_hz=2.36e7, a_r=0.0314, f_r_hz=5.58e4, gamma_r=1.43)
+
+
+def test_the_form_row_of_a_weak_slow_resonance_is_sized_by_the_ring_downs_too():
+    """The beat note alone leaves n_r loose here; updated by the ring-downs it is pinned at 2.
+
+    Both forms are updated on every H parameter (else n_r absorbs the others' misfit), weighed
+    by the beat note and the ring-downs together, and the row is their A difference times the
+    square root of that weight. The old row (beat-note BIC weight, n_r left at the beat note's
+    2.04) was 92 % of u_c(A)^2 on this campaign.
+    """
+    bundle, truth = simulate_campaign(
+        [ChainPreset("W", "weak slow resonance", WEAK_SLOW)],
+        np.random.default_rng(1),
+        replace(Campaign(), n_points=41),
+    )
+    res = run_budget(
+        bundle, bundle.configs["W"], replace(QUICK, posterior="laplace"), np.random.default_rng(3)
+    )
+    form = res.summary["transfer_function"]["model_form"]
+    assert form["weight_n_r_free"] > 0.05  # the premise: the beat note alone cannot tell
+    row = next(c for c in res.budget_a.components if c.name.startswith("H model form"))
+    # a quarter of u_c^2 at most: the noise and the H posterior rows carry the rest
+    assert row.u**2 < 0.25 * res.budget_a.combined_u**2, (row.u, res.budget_a.combined_u)
+    assert form["weight_source"].startswith("beat note and ring-downs"), form
+    # the truth is n_r = 2: within 3 u of the posterior from all the data (normal, 99.7 %)
+    assert abs(form["n_r_refined"] - 2.0) < 3 * form["n_r_refined_u"], form
+    assert form["weight_n_r_free_all_data"] < form["weight_n_r_free"]
+    assert form["form_sampled"] == "n_r = 2"
+    a_si = res.summary["line_area"]
+    # A within 3 u_c of the truth (normal, 99.7 %): the smaller row still covers the error
+    assert abs(a_si["value_si"] - truth["line"]["line_area_hz_per_m"]) < 3 * a_si["u_si"]
