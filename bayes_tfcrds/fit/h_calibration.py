@@ -259,7 +259,9 @@ def free_order_weight(forms: HModelForms, beat_2: TFFit, refined_2, refined_free
     term and the ring-downs' composite chi2 at the update, both forms with one adjustment w),
     u(n_r) the posterior sd of n_r from all the data and n_r uniform over SUPPORT["n_r"] a priori.
     The beat note alone (``forms.weight_free``, BIC) cannot see what the ring-downs know: on a
-    weak slow resonance it leaves n_r loose, and the ring-downs pin it. Returns 1/(1 + 1/B).
+    weak slow resonance it leaves n_r loose, and the ring-downs pin it. Returns 1/(1 + 1/B), or
+    NaN when the update gives n_r no finite posterior width. Both updates must share their
+    records' noise (``noise_v``), or their chi2 are in different units.
     """
     w = refined_2.weight  # one composite adjustment for both: the chi2 differ, not the weights
     delta = (
@@ -269,7 +271,10 @@ def free_order_weight(forms: HModelForms, beat_2: TFFit, refined_2, refined_free
     )
     lo, hi = SUPPORT["n_r"]
     i = refined_free.free.index("n_r")
-    spread = min(np.sqrt(2 * np.pi * refined_free.cov[i, i]), hi - lo)  # Occam factor <= 1
+    var = refined_free.cov[i, i]
+    if not (np.isfinite(delta) and np.isfinite(var) and var > 0):
+        return float("nan")  # no posterior width for n_r: the caller falls back to the beat note
+    spread = min(np.sqrt(2 * np.pi * var), hi - lo)  # Occam factor <= 1
     ln_b = -0.5 * delta + np.log(spread / (hi - lo))
     return float(1.0 / (1.0 + np.exp(np.clip(-ln_b, -700, 700))))
 
@@ -298,16 +303,19 @@ def select_refinement_points(ringdowns, n: int = 6, t_cut_s: float = 4e-6) -> np
 
 
 def refine_on_records(
-    config, start, free, window, t_cuts_s, n_points, prior=None, sens_names=()
+    config, start, free, window, t_cuts_s, n_points, prior=None, sens_names=(), noise_v=None
 ) -> tuple:
     """The multi-ring-down refinement on ``n_points`` records spanning the decay times.
 
     Each record truncated at every t_cut of ``t_cuts_s`` (s), starting from the TFParams
-    ``start``; returns (RefinedTF, indices of the records used).
+    ``start``; returns (RefinedTF, indices of the records used). ``noise_v`` (V, one per record
+    used) overrides the bundle's noise: two refinements whose chi2 are compared must share it.
     """
     rd = config.ringdowns
     idx = select_refinement_points(rd, n_points)
     t_cuts = np.asarray(t_cuts_s, float)
+    if noise_v is None and rd.fit_noise_v is not None:
+        noise_v = np.asarray(rd.fit_noise_v)[idx]
     refined = refine_transfer_function(
         rd.time_s,
         rd.signal_v[idx],
@@ -315,7 +323,7 @@ def refine_on_records(
         start,
         free=free,
         window=window,
-        noise_v=None if rd.fit_noise_v is None else np.asarray(rd.fit_noise_v)[idx],
+        noise_v=noise_v,
         rows_of=np.repeat(np.arange(idx.size), t_cuts.size),
         prior=prior,
         sens_names=sens_names,

@@ -197,6 +197,7 @@ class RefinedTF:
     z: np.ndarray | None = None
     cov_sample: np.ndarray | None = None
     prior_chi2: float = 0.0  # (phi - mu)' P (phi - mu) at the optimum: the beat note's part
+    noise_v: np.ndarray | None = None  # the records' noise (V) the chi2 is in units of
     layout: object = field(default=None, repr=False)  # the refinement data (composite rows)
     likelihood_layout: object = field(default=None, repr=False)  # each sample once, if it exists
 
@@ -684,6 +685,7 @@ def refine_transfer_function(
         z=z,
         cov_sample=cov_s,
         prior_chi2=prior_chi2,
+        noise_v=np.asarray(noise_v, float),
         layout=layout,
         likelihood_layout=likelihood_layout,
     )

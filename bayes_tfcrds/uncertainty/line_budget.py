@@ -134,7 +134,7 @@ class BudgetOptions:
     n_steps: int = 2500
     max_steps: int = 24000
     n_h_draws: int = 1000
-    free_order: bool = True  # sample n_r when the beat note asks for a free order (BIC weight)
+    free_order: bool = True  # sample n_r when the data ask for a free order (weight > 1/2)
 
     def __post_init__(self):
         if self.posterior not in POSTERIORS:
@@ -802,7 +802,7 @@ class _FormChoice:
         return self.sampled is not self.beat_2
 
 
-def _form_update(inp: _Inputs, beat, free: tuple):
+def _form_update(inp: _Inputs, beat, free: tuple, noise_v=None):
     """The ring-down update of one form of H (its beat-note TFFit ``beat``); None if it fails."""
     options = inp.options
     try:
@@ -814,6 +814,7 @@ def _form_update(inp: _Inputs, beat, free: tuple):
             options.t_cuts_s,
             options.n_refine_points,
             HPrior.from_beat(beat),
+            noise_v=noise_v,
         )[0]
     except (AnalysisError, ValueError, np.linalg.LinAlgError) as exc:
         log.info("H model form: the update of %s failed (%s)", free, exc)
@@ -832,7 +833,10 @@ def _form_updates(inp: _Inputs, forms: HModelForms, beat_2):
     if not inp.options.refine_free:
         return None
     r_2 = _form_update(inp, beat_2, tuple(beat_2.free))
-    r_f = None if r_2 is None else _form_update(inp, forms.free_fit, tuple(beat_2.free) + ("n_r",))
+    if r_2 is None:
+        return None
+    # the same records' noise for both (estimated at the n_r = 2 form when the bundle has none)
+    r_f = _form_update(inp, forms.free_fit, tuple(beat_2.free) + ("n_r",), r_2.noise_v)
     return None if r_f is None else (r_2, r_f)
 
 
@@ -853,14 +857,19 @@ def _h_forms(inp: _Inputs) -> _FormChoice:
         beat = beat_note_fit(inp.config, free=BEAT_FREE, window=inp.options.window)
     forms = h_model_forms(inp.config, beat)
     w_free, updates = forms.weight_free, None
-    record = {"weight_source": "beat note alone (BIC): it settles the form"}
+    record = {
+        "weight_source": "beat note alone (BIC): "
+        + ("it settles the form" if forms.free_fit is not None else "the n_r-free fit failed")
+    }
     if forms.free_fit is not None and FORM_WEIGHT_MIN < w_free < 1.0 - FORM_WEIGHT_MIN:
         updates = _form_updates(inp, forms, beat)
-        if updates is None:
+        w_all = np.nan if updates is None else free_order_weight(forms, beat, *updates)
+        if not np.isfinite(w_all):
+            updates = None
             record = {"weight_source": "beat note alone (BIC): no ring-down update of both forms"}
         else:
             r_2, r_f = updates
-            w_free = free_order_weight(forms, beat, r_2, r_f)
+            w_free = w_all
             i = r_f.free.index("n_r")
             record = {
                 "weight_source": "beat note and ring-downs (Laplace evidence)",
@@ -878,6 +887,7 @@ def _form_area(inp: _Inputs, h) -> float:
     """The line area (Hz/m) from the decay times at t_cut with the transfer function ``h``."""
     options = inp.options
     f = fit_ringdowns(inp.config.ringdowns, [options.t_cut_s], "tf-crds", h, options.window)
+    f = f.converged_only()  # as for the A it is compared with
     spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
     return fit_line([spec], options.profile, inp.gd, inp.nu_ref).line_area
 

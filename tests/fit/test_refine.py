@@ -185,3 +185,27 @@ def test_no_tension_test_where_the_ring_downs_hold_almost_no_information():
             assert not ref.in_tension
             assert "no tension test" in refine_module.tension_lines(ref)[0]
             assert abs(t["shift_in_beat_u"]) < 0.1  # the update kept the beat note's f_c
+
+
+def test_prior_chi2_is_the_beat_notes_term_at_the_optimum():
+    """A prior 2 sd off the ring-downs' own f_c, and ten times less informative, costs ~4.
+
+    In the sampled coordinate phi = ln f_c, with ring-down information I_rd and prior
+    information I_p, the optimum is the information-weighted mean, so the prior term is
+    I_p (phi_p - phi_rd)^2 (I_rd/(I_p + I_rd))^2 (= (200/101)^2 = 3.92 for a prior ten times
+    wider than the ring-downs and 2 of its sd off, up to the log's curvature). 1 % covers the
+    change of the sandwich weight and of the model's curvature between the two optima.
+    """
+    sig, beat, noise = _campaign(TAIL, 5)
+    alone = _refine(sig, beat.params, noise)  # the ring-downs' own f_c and its sd
+    f_rd = alone.params.f_c_hz
+    sd_rd = float(np.sqrt(alone.cov_naive[0, 0] / alone.weight))  # 1 / sqrt(w A), Hz
+    sd_p = 10 * sd_rd
+    mean = f_rd + 2 * sd_p
+    prior = HPrior(("f_c_hz",), np.array([mean]), np.array([[sd_p**2]]))
+    new = _refine(sig, replace(beat.params, f_c_hz=mean), noise, prior=prior)
+    i_p, i_rd = (mean / sd_p) ** 2, (f_rd / sd_rd) ** 2  # information in ln f_c
+    expected = i_p * np.log(mean / f_rd) ** 2 * (i_rd / (i_p + i_rd)) ** 2
+    assert expected == pytest.approx((200 / 101) ** 2, rel=0.1)  # the set-up is what it says
+    assert new.prior_chi2 == pytest.approx(expected, rel=0.01), (new.prior_chi2, expected)
+    np.testing.assert_allclose(new.noise_v, noise)  # the noise the chi2 is in units of
