@@ -47,3 +47,28 @@ def test_weight_grows_as_the_data_move_n_r_away_from_2():
     """Flip the sign of the likelihood difference and the weight must fall, not rise."""
     w = [free_order_weight(*_forms_and_updates(n, 0.01)) for n in (2.0, 1.99, 1.98, 1.95)]
     assert np.all(np.diff(w) > 0) and w[0] < 0.05 and w[-1] > 0.999
+
+
+def test_two_updates_compared_share_the_records_noise_when_the_bundle_has_none():
+    """Without noise_v each update estimates the noise at its own start: the second must take
+    the first's, or the two chi2 are in different units (the form weight compares them)."""
+    from dataclasses import replace
+
+    from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit, refine_on_records
+    from bayes_tfcrds.fit.refine import HPrior
+    from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+
+    bundle, _ = simulate_campaign(
+        ["letter-D2"], np.random.default_rng(4), replace(Campaign(), n_points=9)
+    )
+    config = bundle.configs["D2"]
+    noisy = np.asarray(config.ringdowns.noise_v)
+    config = replace(config, ringdowns=replace(config.ringdowns, noise_v=None))
+    beat = beat_note_fit(config, free=BEAT_FREE)
+    args = (("f_c_hz",), "extinction", (2e-6, 4e-6, 6e-6), 3, HPrior.from_beat(beat))
+    first, idx = refine_on_records(config, beat.params, *args)
+    start = replace(beat.params, f_c_hz=1.01 * beat.params.f_c_hz)  # another start
+    second, _ = refine_on_records(config, start, *args, noise_v=first.noise_v)
+    np.testing.assert_array_equal(second.noise_v, first.noise_v)
+    # the estimate is the records' noise: within 10 % (several thousand samples per record)
+    np.testing.assert_allclose(first.noise_v, noisy[idx], rtol=0.1)
