@@ -797,10 +797,6 @@ class _FormChoice:
     updates: tuple | None
     record: dict
 
-    @property
-    def n_r_sampled(self) -> bool:
-        return self.sampled is not self.beat_2
-
 
 def _form_update(inp: _Inputs, beat, free: tuple, noise_v=None):
     """The ring-down update of one form of H (its beat-note TFFit ``beat``); None if it fails."""
