@@ -126,6 +126,32 @@ def _table(records) -> str:
     return "\n".join(lines)
 
 
+GAUSS_2U = 0.9545  # P(|z| < 2) for z ~ N(0, 1): the fraction a calibrated u(tau) gives
+
+
+def tau_pull_statistics(done) -> dict:
+    """How far the decay-time figure may be from its expectation by chance, and the pulls behind it.
+
+    The points of one chain share its H posterior, so they are not independent draws: the
+    standard error of the fraction within 2u is taken from the spread of the per-chain fractions
+    (chains are the independent units), not from the binomial count of points.
+    """
+    if not done:
+        return {}
+    frac = np.array([r["tau_within_2u"] / r["n_points"] for r in done])
+    pulls = np.concatenate([r["points"]["pull"] for r in done])
+    means = np.array([np.mean(r["points"]["pull"]) for r in done])
+    return {
+        "expected_fraction_if_calibrated": GAUSS_2U,
+        "fraction_se_between_chains": float(np.std(frac, ddof=1) / np.sqrt(frac.size))
+        if frac.size > 1
+        else float("nan"),
+        "pull_mean": float(np.mean(pulls)),
+        "pull_sd": float(np.std(pulls)),
+        "chain_mean_pull_sd": float(np.std(means)),
+    }
+
+
 def verdict(records) -> dict:
     """The acceptance figures and PASS/FAIL of each."""
     done = [r for r in records if "tau_within_2u" in r]
@@ -142,6 +168,7 @@ def verdict(records) -> dict:
         "tau_pass": tau_frac >= 0.95,
         "a_within_2u_fraction": a_frac,
         "a_pass": a_frac >= 0.95,
+        "tau_pulls": tau_pull_statistics(done),
         "a_pull_sd": float(np.std([r["a_pull"] for r in done])) if done else float("nan"),
         "f_c_z_sd": float(np.std(z)) if z.size else float("nan"),
         "f_c_z_over_3": int(np.sum(np.abs(z) > 3)),
@@ -155,10 +182,23 @@ def verdict(records) -> dict:
                 "a_within_2u_fraction": float(
                     np.mean([abs(r["a_pull"]) < 2 for r in done if r["regime"] == reg] or [0])
                 ),
+                "tau_pulls": tau_pull_statistics([r for r in done if r["regime"] == reg]),
             }
             for reg in ("tail", "pole")
         },
     }
+
+
+def _tau_context(t: dict) -> str:
+    """The decay-time figure against its expectation, and the pulls (a line of the summary)."""
+    if not t:
+        return "- decay-time pulls: none"
+    return (
+        f"  (a calibrated u gives {100 * t['expected_fraction_if_calibrated']:.2f} %; standard "
+        f"error of the figure from the spread between chains "
+        f"{100 * t['fraction_se_between_chains']:.2f} %; pulls mean {t['pull_mean']:+.3f}, "
+        f"sd {t['pull_sd']:.3f}; sd of the chains' mean pulls {t['chain_mean_pull_sd']:.3f})"
+    )
 
 
 def main(argv=None) -> int:
@@ -210,6 +250,7 @@ def main(argv=None) -> int:
                 f"{'PASS' if v['all_passed_gates'] else 'FAIL'}",
                 f"- decay times within 2 u(tau): {100 * v['tau_within_2u_fraction']:.1f} % of "
                 f"points (>= 95 %) -> {'PASS' if v['tau_pass'] else 'FAIL'}",
+                _tau_context(v["tau_pulls"]),
                 f"- A within 2 u_c(A): {100 * v['a_within_2u_fraction']:.1f} % of chains (>= 95 %)"
                 f" -> {'PASS' if v['a_pass'] else 'FAIL'}; A pull sd {v['a_pull_sd']:.2f}",
                 f"- refined f_c tension z: sd {v['f_c_z_sd']:.2f}, |z| > 3 in "
