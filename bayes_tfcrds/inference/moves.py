@@ -15,6 +15,12 @@ whose proposal is a mixture of heavy-tailed densities centred on them lets every
 between modes, with the acceptance ratio keeping the posterior exactly invariant (Tierney 1994,
 Ann. Statist. 22, 1701). Mixed with the local moves, it leaves a unimodal posterior unchanged
 and makes a multimodal one mix.
+
+When the optima are not enough (a curved ridge joining them, as an over-damped resonance's fast
+pole makes when it runs out of the measured band), :func:`fitted_mixture` builds the proposal
+from a pilot run's samples instead: many small components laid along wherever the pilot went.
+The proposal is fixed before the run that uses it starts, so that run is a time-homogeneous
+Metropolis-Hastings chain with the posterior invariant (adapting it during the run would not be).
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from dataclasses import dataclass, field
 import emcee
 import numpy as np
 from scipy import special
+from scipy.cluster.vq import kmeans2
 
 STUDENT_DF = 4.0  # heavy tails: the proposal must not be lighter-tailed than the posterior
 
@@ -86,6 +93,50 @@ class MixtureProposal:
             )
         with np.errstate(divide="ignore"):
             return special.logsumexp(out + np.log(self.weights)[None, :], axis=1)
+
+
+# a fitted mixture: at most this many components, each from at least MIN_POINTS_PER_DIM * d pilot
+# samples (enough for a covariance in d dimensions), widened FITTED_INFLATE times (a proposal a
+# little wider than the target keeps the independence sampler's ratio bounded), its weights
+# FITTED_UNIFORM_SHARE uniform so that rarely visited parts are still proposed
+FITTED_COMPONENTS = 32
+MIN_POINTS_PER_DIM = 10
+FITTED_INFLATE = 1.5
+FITTED_UNIFORM_SHARE = 0.3
+
+
+def fitted_mixture(samples, rng: np.random.Generator, n_components: int = FITTED_COMPONENTS):
+    """A Student-t mixture laid over pilot ``samples`` (n, d), for :func:`mode_jump_move`.
+
+    k-means (on coordinates scaled by their sd) cuts the samples into up to ``n_components``
+    clusters; each cluster with enough points gives one component: its mean, its covariance
+    widened FITTED_INFLATE times. Many small components follow a curved or multimodal posterior
+    that one Gaussian per optimum cannot. Weights: the clusters' shares, mixed with a uniform
+    share. Raises ValueError when the samples are too few or do not vary.
+    """
+    x = np.asarray(samples, float)
+    n, d = x.shape
+    sd = x.std(axis=0)
+    if not np.all(sd > 0) or n < MIN_POINTS_PER_DIM * d:
+        raise ValueError(f"need >= {MIN_POINTS_PER_DIM * d} varying samples, got {n}")
+    k = int(min(n_components, n // (MIN_POINTS_PER_DIM * d)))
+    _, label = kmeans2(x / sd, k, seed=rng, minit="++")
+    means, covs, counts = [], [], []
+    for j in range(k):
+        xj = x[label == j]
+        if len(xj) < MIN_POINTS_PER_DIM * d:
+            continue
+        cov = FITTED_INFLATE * np.cov(xj.T) + np.diag((1e-6 * sd) ** 2)
+        if np.linalg.eigvalsh(cov)[0] <= 0:
+            continue  # a cluster of repeated points (walkers that did not move): no shape
+        means.append(xj.mean(axis=0))
+        covs.append(cov)
+        counts.append(len(xj))
+    if not counts:
+        raise ValueError("no cluster of the samples has a covariance")
+    w = np.asarray(counts, float)
+    w = (1.0 - FITTED_UNIFORM_SHARE) * w / w.sum() + FITTED_UNIFORM_SHARE / w.size
+    return MixtureProposal(np.array(means), np.array(covs), w / w.sum())
 
 
 def _choice(random, p, n):

@@ -11,6 +11,7 @@ whose gates decide whether the budget may be shown.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
@@ -31,6 +32,7 @@ from bayes_tfcrds.inference.diagnostics import Gates
 from bayes_tfcrds.inference.moves import (
     DifferentialEvolutionMove,
     MixtureProposal,
+    fitted_mixture,
     mode_jump_move,
 )
 from bayes_tfcrds.inference.posteriors import (
@@ -46,7 +48,7 @@ from bayes_tfcrds.uncertainty.propagate import model_of
 MODE_JUMP_SHARE = 0.15  # share of steps that propose a jump between the known modes
 
 
-def sampler_moves(modes: MixtureProposal | None = None):
+def sampler_moves(modes: MixtureProposal | None = None, jump_share: float = MODE_JUMP_SHARE):
     """Differential-evolution proposals, and mode jumps when modes are known.
 
     On these correlated, bounded posteriors DE cuts the integrated autocorrelation time about
@@ -55,15 +57,16 @@ def sampler_moves(modes: MixtureProposal | None = None):
     target invariant (see :mod:`bayes_tfcrds.inference.moves`), and the published update mixed
     in at 20 % gave a lower ESS than DE alone on all three budget posteriors (letter D2, seed 1:
     H 5724 vs 7104, line 5802 vs 6427, CMDS 5263 vs 6002 at 2500 steps) at more cost per step.
-    With ``modes`` (a mixture over the least-squares optima), a share of steps is an
+    With ``modes`` (a mixture over the least-squares optima, or one fitted to a pilot run), a
+    share ``jump_share`` of steps is an
     independence Metropolis-Hastings jump between them, so walkers do not stay stuck in a minor
     mode of a multimodal posterior.
     """
     if modes is None:
         return [(DifferentialEvolutionMove(), 1.0)]
     return [
-        (DifferentialEvolutionMove(), 1.0 - MODE_JUMP_SHARE),
-        (mode_jump_move(modes), MODE_JUMP_SHARE),
+        (DifferentialEvolutionMove(), 1.0 - jump_share),
+        (mode_jump_move(modes), jump_share),
     ]
 
 
@@ -87,6 +90,7 @@ def _sample(
     gates=Gates(),
     modes=None,
     units=None,
+    jump_share=MODE_JUMP_SHARE,
 ):
     """emcee on ``post`` with the budget's ensembles, walkers, lengths and moves.
 
@@ -106,7 +110,7 @@ def _sample(
         backend_path=backend,
         progress=progress,
         label=label,
-        moves=sampler_moves(modes),
+        moves=sampler_moves(modes, jump_share),
         derived_fn=derived,
         gates=gates,
         priors=post.priors,
@@ -316,6 +320,57 @@ def mixture_starts(post, modes: MixtureProposal, rng, n, inflate=OVERDISPERSION)
 
 
 H_GATE_FREQUENCIES = 8  # log-spaced frequencies at which H(f) is gated
+
+
+# share of steps that jump within a mixture fitted to a pilot run (see _pilot_refit): the fitted
+# proposal follows the posterior closely, so jumps do most of the mixing and DE the local rest
+FITTED_JUMP_SHARE = 0.5
+
+
+REFITS = 2  # at most this many runs with fitted jumps, each fitted to the run before
+
+
+def _pilot_refit(post, pilot, sample, options, backend, rng):
+    """Sample again, with jumps fitted to the failed run ``pilot``; returns the last run.
+
+    Where the beat note's optima are joined by a long curved ridge (an over-damped resonance
+    whose fast pole leaves the measured band: measured on zoo chains with a weak resonance below
+    f_c, tau_int of H(f) about 7000 steps), neither the local moves nor jumps between the optima
+    cross it within the budget's steps. The failed run has been along that ridge, slowly: a
+    mixture fitted to its samples (:func:`~bayes_tfcrds.inference.moves.fitted_mixture`) lets
+    every walker jump along it. A run that still fails (its pilot had not gone far enough) is
+    the pilot of the next, up to REFITS runs. The pilot's samples serve only to build the
+    proposal and the starts (drawn from it); each run's own gates judge it. ``sample`` is
+    :func:`_sample` with the posterior's fixed arguments.
+    """
+    run = pilot
+    for k in range(REFITS):
+        try:
+            mix = fitted_mixture(run.flat(), rng)
+        except ValueError:
+            return run  # a run that did not move gives no shape to fit: its failure stands
+        run = sample(
+            p0=partial(_mixture_starts, post, mix),
+            options=options,
+            backend=None if backend is None else backend.replace(".h5", f"_refit{k}.h5"),
+            label=f"H | beat note (jumps fitted to a pilot run, {k + 1})",
+            modes=mix,
+            jump_share=FITTED_JUMP_SHARE,
+        )
+        if run.passed:
+            break
+    return run
+
+
+def _mixture_starts(post, mix, rng, n):
+    """``n`` draws of ``mix`` inside the support of ``post`` (outside ones drawn again)."""
+    x = mix.draw(rng, n)
+    for _ in range(100):
+        bad = ~np.isfinite(post(x))
+        if not bad.any():
+            return x
+        x[bad] = mix.draw(rng, int(bad.sum()))
+    raise ValueError("the fitted mixture proposes no start inside the prior's support")
 
 
 def h_predictions(post, ringdowns):
@@ -541,21 +596,20 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
             if modes is None
             else options.with_steps(max_steps=MULTIMODAL_STEPS * options.max_steps)
         )
-        run = _sample(
+        sample = partial(
+            _sample,
             post,
-            p0,
-            post.sample_names,
-            ndim,
-            rng,
-            steps,
-            backend,
-            progress,
-            "H | beat note",
+            names=post.sample_names,
+            ndim=ndim,
+            rng=rng,
+            progress=progress,
             derived=derived,
             gates=Gates(gated=gated),
-            modes=modes,
             units=h_prediction_units(gated),
         )
+        run = sample(p0=p0, options=steps, backend=backend, label="H | beat note", modes=modes)
+        if not run.passed:
+            run = _pilot_refit(post, run, sample, options, backend, rng)
     if options.method != "tf-crds" or not options.refine_free:
         draws = _pool(beat, post, run, rng, options.n_h_draws)
         parts = {"others": post.free, "refined": (), "records": None, "beat_draws": draws}

@@ -6,10 +6,11 @@ import numpy as np
 import pytest
 
 from bayes_tfcrds.fit.beat_note import MODE_DCHI2
+from bayes_tfcrds.inference.runner import run_ensembles
 from bayes_tfcrds.simulate.campaign import Campaign, ChainPreset, simulate_campaign
 from bayes_tfcrds.simulate.zoo import draw_chain
 from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
-from bayes_tfcrds.uncertainty.posterior_steps import _beat_posterior
+from bayes_tfcrds.uncertainty.posterior_steps import _beat_posterior, _pilot_refit, sampler_moves
 
 
 def _zoo_config(index):
@@ -197,3 +198,48 @@ def test_incompatible_refinement_and_beat_note_fail_with_the_reason():
     msg = str(err)
     assert "f_c_hz: 100% of draws outside" in msg and "about the refinement's -0.918" in msg
     assert "--refine" in msg and "10 of 10 joint draws" in msg
+
+
+def _ridge(x):
+    # a thin bent ridge (a ~ N(0, 1), b = 3 a^2 + 0.1 z): what an over-damped resonance's
+    # (f_r, Gamma_r) makes in log coordinates when its fast pole leaves the band
+    x = np.atleast_2d(x)
+    return -0.5 * x[:, 0] ** 2 - 0.5 * ((x[:, 1] - 3 * x[:, 0] ** 2) / 0.1) ** 2
+
+
+def test_a_failed_h_run_is_sampled_again_with_jumps_fitted_to_it():
+    def sample(p0, options, backend, label, modes=None, jump_share=0.15):
+        return run_ensembles(
+            _ridge,
+            p0,
+            ("a", "b"),
+            np.random.default_rng(5),
+            n_walkers=16,
+            n_steps=options.n_steps,
+            max_steps=options.max_steps,
+            vectorize=True,
+            moves=sampler_moves(modes, jump_share),
+            label=label,
+        )
+
+    def starts(r, n):
+        return np.column_stack([r.normal(size=n), 0.1 * r.normal(size=n)])
+
+    pilot = sample(starts, BudgetOptions().with_steps(4000, 4000), None, "pilot")
+    assert not pilot.passed  # DE alone along the bend: tau_int about 150 steps, n_tau < 50
+    options = BudgetOptions().with_steps(1500, 6000)
+    run = _pilot_refit(_ridge, pilot, sample, options, None, np.random.default_rng(15))
+    assert run.passed and "jumps fitted to a pilot run" in run.label
+    # P(|a| > 1) = 0.3173; the gates passed with ESS >= 400, so its sd is <= 0.023; 4 sd
+    assert abs(np.mean(np.abs(run.flat()[:, 0]) > 1) - 0.3173) < 0.093
+
+
+def test_a_pilot_that_never_moved_keeps_its_failure():
+    class Stuck:
+        passed = False
+
+        def flat(self):
+            return np.ones((1000, 2))
+
+    stuck = Stuck()
+    assert _pilot_refit(_ridge, stuck, None, None, None, np.random.default_rng(0)) is stuck
