@@ -58,11 +58,9 @@ from bayes_tfcrds.fit.h_calibration import (
     beat_note_fit,
     free_order_weight,
     h_model_forms,
-    refine_on_records,
 )
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_of
-from bayes_tfcrds.fit.refine import HPrior
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import cmds_spectrum, crds_spectrum
 from bayes_tfcrds.inference.posteriors import H_PRIOR
@@ -88,6 +86,7 @@ from bayes_tfcrds.uncertainty.posterior_steps import (
     line_draws,
     line_mcmc,
     priors_summary,
+    ring_down_update,
 )
 from bayes_tfcrds.uncertainty.propagate import (
     TauKernels,
@@ -802,16 +801,7 @@ def _form_update(inp: _Inputs, beat, free: tuple, noise_v=None):
     """The ring-down update of one form of H (its beat-note TFFit ``beat``); None if it fails."""
     options = inp.options
     try:
-        r = refine_on_records(
-            inp.config,
-            beat.params,
-            free,
-            options.window,
-            options.t_cuts_s,
-            options.n_refine_points,
-            HPrior.from_beat(beat),
-            noise_v=noise_v,
-        )[0]
+        r = ring_down_update(inp.config, options, beat, free, noise_v=noise_v)[0]
     except (AnalysisError, ValueError, np.linalg.LinAlgError) as exc:
         log.info("H model form: the update of %s failed (%s)", free, exc)
         return None

@@ -472,8 +472,13 @@ def draws_in_support(rng, mean, cov, lo, hi, size: int, names) -> np.ndarray:
     )
 
 
-def _refinement(config, options, beat, free):
-    """The multi-ring-down update of ``free``; returns (refinement, records used)."""
+def ring_down_update(config, options, beat, free, sens_names=(), noise_v=None):
+    """The multi-ring-down update of ``free`` with the beat-note fit ``beat`` as prior.
+
+    The options' window, t_cuts and number of records; ``sens_names`` the parameters whose
+    ring-down information is reported, ``noise_v`` the records' noise when it must be shared
+    with another update. Returns (refinement, records used).
+    """
     return refine_on_records(
         config,
         beat.params,
@@ -482,7 +487,8 @@ def _refinement(config, options, beat, free):
         options.t_cuts_s,
         options.n_refine_points,
         HPrior.from_beat(beat),
-        tuple(beat.free),
+        sens_names,
+        noise_v,
     )
 
 
@@ -617,7 +623,7 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         return beat, None, beat.params, draws, run, parts
     free = tuple(options.refine_free)
     while True:
-        refined, idx = _refinement(config, options, beat, free)
+        refined, idx = ring_down_update(config, options, beat, free, tuple(beat.free))
         draws, beat_draws, weights = _joint_draws(beat, post, run, refined, options, rng)
         ratio = refined.information_ratio()
         if weights.passed or not ratio:
