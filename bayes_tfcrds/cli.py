@@ -1007,7 +1007,8 @@ def _add_budget(sub) -> None:
     sp.add_argument(
         "--max-steps",
         type=int,
-        help="longest run per ensemble; a run still missing a gate then is reported as failed "
+        help="longest run per ensemble; a run still missing a gate then is reported as failed, "
+        "except H, sampled again up to twice with jumps fitted to the failed run "
         "(default max(8 x steps, 24000))",
     )
     sp.add_argument(
