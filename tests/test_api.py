@@ -62,7 +62,7 @@ def test_readme_python_section_runs_as_written(tmp_path, monkeypatch):
     assert isinstance(line, bt.LineAnalysis) and line.line_area.unit == "cm^-2"
     assert abs(line.ratio.value - 1) < 4 * line.ratio.u
     assert line.to_dict()["ratio"] == {"value": line.ratio.value, "u": line.ratio.u}
-    assert budget.passed
+    assert budget.passed, budget.status
     assert abs(budget.line_area.value - line.line_area.value) < budget.line_area.u
     assert namespace["record"]["line_area"]["unit"] == "cm^-2"
     assert (tmp_path / "line.png").stat().st_size > 10_000
