@@ -58,9 +58,8 @@ def sampler_moves(modes: MixtureProposal | None = None, jump_share: float = MODE
     in at 20 % gave a lower ESS than DE alone on all three budget posteriors (letter D2, seed 1:
     H 5724 vs 7104, line 5802 vs 6427, CMDS 5263 vs 6002 at 2500 steps) at more cost per step.
     With ``modes`` (a mixture over the least-squares optima, or one fitted to a pilot run), a
-    share ``jump_share`` of steps is an
-    independence Metropolis-Hastings jump between them, so walkers do not stay stuck in a minor
-    mode of a multimodal posterior.
+    share ``jump_share`` of steps is an independence Metropolis-Hastings jump between them, so
+    walkers do not stay stuck in a minor mode of a multimodal posterior.
     """
     if modes is None:
         return [(DifferentialEvolutionMove(), 1.0)]
