@@ -1223,6 +1223,9 @@ def _refinement_summary(refined) -> dict:
         "in_tension": bool(refined.in_tension),
         "composite_weight": float(refined.weight),
         "converged": bool(refined.converged),
+        # the prior the ring-downs updated: the least-squares beat note, or the sampled beat-note
+        # posterior's moments where the refinement could not be linearised about the former
+        "beat_note_prior": None if refined.prior is None else refined.prior.source,
         "note": "z: shift of the refined value from the beat note over its expected scatter when "
         "both agree; |z| > 3 is reported as a finding",
     }

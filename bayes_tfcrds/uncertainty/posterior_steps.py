@@ -10,7 +10,7 @@ whose gates decide whether the budget may be shown.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -471,24 +471,50 @@ def draws_in_support(rng, mean, cov, lo, hi, size: int, names) -> np.ndarray:
     )
 
 
-def ring_down_update(config, options, beat, free, sens_names=(), noise_v=None):
+def ring_down_update(config, options, beat, free, sens_names=(), noise_v=None, prior=None):
     """The multi-ring-down update of ``free`` with the beat-note fit ``beat`` as prior.
 
     The options' window, t_cuts and number of records; ``sens_names`` the parameters whose
     ring-down information is reported, ``noise_v`` the records' noise when it must be shared
-    with another update. Returns (refinement, records used).
+    with another update. ``prior`` replaces the least-squares beat note as prior and start (see
+    :func:`sampled_beat_prior`). Returns (refinement, records used).
     """
+    start = beat.params
+    if prior is None:
+        prior = HPrior.from_beat(beat)
+    else:
+        start = replace(start, **dict(zip(prior.names, map(float, prior.mean))))
     return refine_on_records(
         config,
-        beat.params,
+        start,
         free,
         options.window,
         options.t_cuts_s,
         options.n_refine_points,
-        HPrior.from_beat(beat),
+        prior,
         sens_names,
         noise_v,
     )
+
+
+def sampled_beat_prior(post, run) -> HPrior:
+    """The beat-note posterior as the MCMC run sampled it, as a Gaussian :class:`HPrior`.
+
+    Mean and covariance of the run's samples in the refinement's parametrisation (log of the
+    positive parameters), so the refinement linearises where the posterior's mass is. Used when
+    the least-squares optimum, the usual centre, lies in a mode or corner that holds little of
+    that mass (a weak resonance beside a large region of out-of-band resonances that the beat
+    note cannot tell from a gain): linear about the optimum, the refinement sends every draw
+    from the other region outside the support.
+    """
+    names = tuple(post.free)
+    nat = post.to_params(run.flat())
+    phi = to_sample(names, np.array([nat[n] for n in names]))
+    mean = phi.mean(axis=1)
+    cov = np.atleast_2d(np.cov(phi))
+    centre = from_sample(names, mean)
+    jac = sample_jacobian(names, centre)
+    return HPrior(names, centre, cov * np.outer(jac, jac), source="beat note (MCMC moments)")
 
 
 def in_support(draws: np.ndarray, priors) -> np.ndarray:
@@ -620,10 +646,18 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         parts = {"others": post.free, "refined": (), "records": None, "beat_draws": draws}
         parts["names"] = post.free
         return beat, None, beat.params, draws, run, parts
-    free = tuple(options.refine_free)
+    free, prior = tuple(options.refine_free), None
     while True:
-        refined, idx = ring_down_update(config, options, beat, free, tuple(beat.free))
-        draws, beat_draws, weights = _joint_draws(beat, post, run, refined, options, rng)
+        refined, idx = ring_down_update(config, options, beat, free, tuple(beat.free), prior=prior)
+        try:
+            draws, beat_draws, weights = _joint_draws(beat, post, run, refined, options, rng)
+        except AnalysisError:
+            if prior is not None or run is None:
+                raise
+            # linear about the least-squares optimum, the refinement reaches no draw of the
+            # sampled posterior: linearise where the posterior's mass is, and weigh again
+            prior = sampled_beat_prior(post, run)
+            continue
         ratio = refined.information_ratio()
         if weights.passed or not ratio:
             break
@@ -638,6 +672,7 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         "records": idx,
         "beat_draws": beat_draws,
         "weights": weights,
+        "linearised_at": "least-squares beat note" if prior is None else prior.source,
     }
     return beat, refined, posterior_centre(refined.params, draws, post.free), draws, run, parts
 

@@ -243,3 +243,81 @@ def test_a_pilot_that_never_moved_keeps_its_failure():
 
     stuck = Stuck()
     assert _pilot_refit(_ridge, stuck, None, None, None, np.random.default_rng(0)) is stuck
+
+
+def test_the_sampled_beat_prior_has_the_runs_moments_in_log_space():
+    """The refinement's prior from an MCMC run: mean and covariance of the samples in the
+    refinement's parametrisation (log f_c, log f_r, A_r linear), whatever the natural scale."""
+    from types import SimpleNamespace
+
+    from bayes_tfcrds.fit.refine import to_sample
+    from bayes_tfcrds.physics.transfer_function import TFParams
+    from bayes_tfcrds.uncertainty import posterior_steps as ps
+
+    names = ("f_c_hz", "a_r", "f_r_hz")
+    mean = np.array([np.log(3e6), 37.0, np.log(3e8)])  # the out-of-band region of campaign 99
+    cov = np.array([[0.01, 0.02, 0.0], [0.02, 0.8, 0.5], [0.0, 0.5, 1.5]])
+    phi = np.random.default_rng(3).multivariate_normal(mean, cov, size=40000)
+    nat = {"f_c_hz": np.exp(phi[:, 0]), "a_r": phi[:, 1], "f_r_hz": np.exp(phi[:, 2])}
+    post = SimpleNamespace(free=names, to_params=lambda x: nat)
+    prior = ps.sampled_beat_prior(post, SimpleNamespace(flat=lambda: None))
+    assert prior.names == names and "MCMC" in prior.source
+    start = TFParams(**dict(zip(names, prior.mean)), gamma_r=0.5)
+    mu, info, beta, others = prior.conditional(names, start)
+    assert others == () and beta.shape == (3, 0)
+    # 40000 draws: each mean within 4 s.e. (sd / 200) of the generating one, and the covariance
+    # within 5 % (the s.e. of a variance is sqrt(2 / n) = 0.7 %)
+    assert np.all(np.abs(mu - mean) < 4 * np.sqrt(np.diag(cov)) / 200)
+    np.testing.assert_allclose(to_sample(names, prior.mean), mu)
+    np.testing.assert_allclose(np.linalg.inv(info), cov, rtol=0.05, atol=0.005)
+
+
+def test_a_refinement_that_reaches_no_draw_is_linearised_again_where_the_posterior_is(
+    monkeypatch,
+):
+    """Campaign 99 of studies/coverage.toml: the beat-note MCMC holds its mass where the
+    least-squares optimum is not, and linear about the optimum every joint draw leaves the
+    support. The update is made again about the run's moments, and the result says so; without
+    a run (Laplace) there is nothing else to linearise about, and the reason stands."""
+    from types import SimpleNamespace
+
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.physics.transfer_function import TFParams
+    from bayes_tfcrds.uncertainty import posterior_steps as ps
+
+    names = ("f_c_hz", "a_r")
+    lsq = TFParams(f_c_hz=2.9e6, a_r=0.026, f_r_hz=4e5, gamma_r=0.2)
+    samples = np.column_stack([np.full(500, 3e6), np.random.default_rng(0).normal(37, 1, 500)])
+    run = SimpleNamespace(passed=True, flat=lambda: samples)
+    post = SimpleNamespace(
+        free=names, sample_names=names, to_params=lambda x: dict(zip(names, x.T))
+    )
+    beat = SimpleNamespace(params=lsq, free=names)
+    monkeypatch.setattr(ps, "_beat_posterior", lambda *a: (beat, post, None, None))
+    monkeypatch.setattr(ps, "h_predictions", lambda *a: (None, ()))
+    monkeypatch.setattr(ps, "_sample", lambda *a, **k: run)
+    priors_seen = []
+
+    def update(config, options, beat, free, sens_names=(), noise_v=None, prior=None):
+        priors_seen.append(prior)
+        start = lsq if prior is None else TFParams(**dict(zip(names, prior.mean)), f_r_hz=3e8)
+        return SimpleNamespace(params=start, free=free, information_ratio=dict), None
+
+    def joint(beat, post, run, refined, options, rng):
+        if refined.params.a_r < 1:  # linear about the optimum: nothing inside the support
+            raise AnalysisError("8000 of 8000 joint draws outside the prior's support")
+        return samples, samples, SimpleNamespace(passed=True)
+
+    monkeypatch.setattr(ps, "ring_down_update", update)
+    monkeypatch.setattr(ps, "_joint_draws", joint)
+    monkeypatch.setattr(ps, "posterior_centre", lambda params, draws, names: params)
+    options = BudgetOptions()
+    config = SimpleNamespace(ringdowns=None)
+    out = ps.h_posterior(config, options, np.random.default_rng(1), None, False)
+    parts = out[-1]
+    assert priors_seen[0] is None and "MCMC" in priors_seen[1].source
+    assert abs(priors_seen[1].mean[1] - 37) < 4 * 1 / np.sqrt(500)  # the run's mean A_r
+    assert parts["linearised_at"] == priors_seen[1].source
+    # the Laplace path has no sampled posterior: the support error is what it reports
+    with pytest.raises(AnalysisError, match="outside the prior's support"):
+        ps.h_posterior(config, replace(options, posterior="laplace"), None, None, False)
