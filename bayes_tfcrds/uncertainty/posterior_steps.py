@@ -672,7 +672,6 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         "records": idx,
         "beat_draws": beat_draws,
         "weights": weights,
-        "linearised_at": "least-squares beat note" if prior is None else prior.source,
     }
     return beat, refined, posterior_centre(refined.params, draws, post.free), draws, run, parts
 
