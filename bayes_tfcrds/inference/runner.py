@@ -388,9 +388,14 @@ def run_ensembles(
                 result.status,
             )
             if result.passed or target >= max_steps:
-                return result
+                break
             target = extended_length(result, target, gates, int(max_steps))
     finally:
         stop.__exit__()
         for b in bars:
             b.close()
+    if stop.requested:
+        # Ctrl-C after the last step (in the diagnostics): the chains are committed; stop as
+        # the user asked instead of carrying on with the rest of the command
+        raise KeyboardInterrupt
+    return result
