@@ -195,8 +195,14 @@ def test_ctrl_c_in_the_diagnostics_after_the_last_step_stops_the_run(tmp_path, m
 
     path = tmp_path / "chains.h5"
     monkeypatch.setattr(runner, "_evaluate", evaluate_then_ctrl_c)
-    with pytest.raises(KeyboardInterrupt):
-        short_run(n=200, backend_path=path)
+    # Python's own Ctrl-C handler, as in a terminal (the sampler installs its stop request only
+    # over that one; a test worker may have inherited SIGINT ignored)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            short_run(n=200, backend_path=path)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     monkeypatch.undo()
     assert _iterations(path) == [200] * 4
     assert_same(short_run(n=200, backend_path=path), reference_run(200))
@@ -222,6 +228,16 @@ def _command(bundle, out):
     ]
 
 
+def _ctrl_c_as_in_a_terminal():
+    """In the child before exec: SIGINT back to its default action.
+
+    A process started with SIGINT ignored keeps it ignored (Python then installs no Ctrl-C
+    handler), and test workers can inherit it ignored: the command must see Ctrl-C as a user's
+    shell gives it.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env():
     # one BLAS thread: the test's time budget is for one core, and the other core is the suite's
     return dict(os.environ, OMP_NUM_THREADS="1", OPENBLAS_NUM_THREADS="1", MKL_NUM_THREADS="1")
@@ -242,7 +258,11 @@ class _Watched:
 
     def __init__(self, bundle, out):
         self.proc = subprocess.Popen(
-            _command(bundle, out), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=_env()
+            _command(bundle, out),
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            env=_env(),
+            preexec_fn=_ctrl_c_as_in_a_terminal,
         )
         self.text = ""
         self._lock = threading.Lock()
