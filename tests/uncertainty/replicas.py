@@ -101,8 +101,9 @@ def replicate(
     """Run ``n`` replicas of simulate + budget; seeds derive from ``seed`` (reproducible).
 
     Replica i draws from child i of ``SeedSequence(seed)`` whatever ``n`` is, so the first
-    replicas of a longer run are those of a shorter one; ``pool`` (an Executor) runs them in
-    parallel with the same results.
+    replicas of a longer run are those of a shorter one (with ``fixed_beat`` the shared beat
+    note is child n's, so it changes with ``n``); ``pool`` (an Executor) runs them in parallel
+    with the same results.
     """
     jobs = [(seed, i, n, preset, campaign, options, fixed_beat) for i in range(n)]
     runs = pool.map(_replica, jobs) if pool is not None else map(_replica, jobs)
