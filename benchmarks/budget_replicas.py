@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     ok = True
     try:
         t0 = time.perf_counter()
-        rep = replicate(args.replicas, args.seed, "letter-D4", TINY, FAST, pool=pool)
+        rep = replicate(args.replicas, args.seed, "letter-D4", TINY, FAST, progress=True, pool=pool)
         c = scatter_matches_u(rep)
         good = c["ratio_ok"] and c["unbiased"]
         ok &= good
@@ -56,7 +56,14 @@ def main(argv=None) -> int:
         )
         t0 = time.perf_counter()
         rep = replicate(
-            args.replicas, args.seed + 1, "letter-D4", TINY, FAST, fixed_beat=True, pool=pool
+            args.replicas,
+            args.seed + 1,
+            "letter-D4",
+            TINY,
+            FAST,
+            fixed_beat=True,
+            progress=True,
+            pool=pool,
         )
         c = noise_rows_bracket_scatter(rep)
         ok &= c["ok"]

@@ -41,9 +41,6 @@ class Replicas:
         """Scatter of A over replicas divided by the mean stated statistical u(A)."""
         return float(np.std(self.area, ddof=1) / np.mean(self.u_stat))
 
-    def ratio_scatter_to_noise_row(self) -> float:
-        return float(np.std(self.area, ddof=1) / np.mean(self.u_noise))
-
 
 def sd_ratio_band(n: int, k_sigma: float = 3.0) -> tuple[float, float]:
     """Where the sample sd of ``n`` normal values over their true sd falls, two-sided, with the
