@@ -478,6 +478,9 @@ def cmd_budget(args) -> int:
     if res.refined is not None:
         for line in tension_lines(res.refined):
             _say(f"H refinement: {line}")
+    if res.identification is not None:
+        for line in res.identification.lines():
+            _say(f"finding: H {line}")
     tfs = res.summary.get("transfer_function") or {}
     form = tfs.get("model_form")
     if form and form["asks_for_free_order"]:

@@ -96,6 +96,13 @@ def run_chain(args) -> dict:
         f_c_beat=ref["beat_note"],
         f_c_refined=ref["refined"],
         f_c_z=ref["z"],
+        # f_c against the truth, where the budget says the data identify it (fit.h_identification)
+        f_c_identified="f_c_hz"
+        not in summary["transfer_function"]["identification"]["not_identified"],
+        f_c_pull=float(
+            (summary["transfer_function"]["f_c_hz"] - tf.f_c_hz)
+            / np.std(res.samples["h_draws"][:, list(res.samples["h_names"]).index("f_c_hz")])
+        ),
         points=points,
     )
     return rec
@@ -104,15 +111,15 @@ def run_chain(args) -> dict:
 def _table(records) -> str:
     lines = [
         "| # | regime | f_c (Hz) | A_r | f_r (Hz) | Gamma_r | status | tau in 2u | tau pull sd "
-        "| A pull | u(A)/A | f_c z | s |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| A pull | u(A)/A | f_c z | f_c pull | s |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in records:
         c = r["chain"]
         if "tau_within_2u" not in r:
             lines.append(
                 f"| {r['index']} | {r['regime']} | {c['f_c_hz']:.3g} | {c['a_r']:.3g} | "
-                f"{c['f_r_hz']:.3g} | {c['gamma_r']:.2f} | {r['status']} | | | | | | "
+                f"{c['f_r_hz']:.3g} | {c['gamma_r']:.2f} | {r['status']} | | | | | | | "
                 f"{r['seconds']:.0f} |"
             )
             continue
@@ -121,9 +128,17 @@ def _table(records) -> str:
             f"{c['f_r_hz']:.3g} | {c['gamma_r']:.2f} | {r['status']} | "
             f"{r['tau_within_2u']}/{r['n_points']} | {r['tau_pull_sd']:.2f} | {r['a_pull']:+.2f} | "
             f"{100 * r['a_rel_u']:.3f} % | "
-            f"{'-' if r['f_c_z'] is None else format(r['f_c_z'], '+.2f')} | {r['seconds']:.0f} |"
+            f"{'-' if r['f_c_z'] is None else format(r['f_c_z'], '+.2f')} | {_f_c_cell(r)} | "
+            f"{r['seconds']:.0f} |"
         )
     return "\n".join(lines)
+
+
+def _f_c_cell(r) -> str:
+    """f_c's pull against the truth, or 'not identified' where the budget says so."""
+    if "f_c_pull" not in r:
+        return "-"
+    return f"{r['f_c_pull']:+.2f}" if r["f_c_identified"] else "not identified"
 
 
 GAUSS_2U = 0.9545  # P(|z| < 2) for z ~ N(0, 1): the fraction a calibrated u(tau) gives
@@ -172,6 +187,10 @@ def verdict(records) -> dict:
         "a_pull_sd": float(np.std([r["a_pull"] for r in done])) if done else float("nan"),
         "f_c_z_sd": float(np.std(z)) if z.size else float("nan"),
         "f_c_z_over_3": int(np.sum(np.abs(z) > 3)),
+        "f_c_not_identified": sum(not r.get("f_c_identified", True) for r in done),
+        "f_c_identified_pull_over_3": sum(
+            abs(r["f_c_pull"]) > 3 for r in done if r.get("f_c_identified", False)
+        ),
         "by_regime": {
             reg: {
                 "chains": sum(r["regime"] == reg for r in records),
@@ -255,6 +274,9 @@ def main(argv=None) -> int:
                 f" -> {'PASS' if v['a_pass'] else 'FAIL'}; A pull sd {v['a_pull_sd']:.2f}",
                 f"- refined f_c tension z: sd {v['f_c_z_sd']:.2f}, |z| > 3 in "
                 f"{v['f_c_z_over_3']} chains",
+                f"- f_c not identified (another description of Eq. 2 gives the same H): "
+                f"{v['f_c_not_identified']} chains; identified with |pull| > 3: "
+                f"{v['f_c_identified_pull_over_3']}",
                 f"- by regime: {json.dumps(v['by_regime'])}",
             ]
         )

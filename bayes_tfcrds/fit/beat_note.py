@@ -70,7 +70,7 @@ MAX_MODES = 6  # distinct optima kept (best included)
 MAX_POLISHED = 12  # coarse solutions polished (the starts mostly fall into a few basins)
 
 
-def _default_starts(f_hz, h_mag, variant):
+def default_starts(f_hz, h_mag, variant):
     """Starting points covering the two shapes Eq. 2 takes in practice.
 
     A fast first-order roll-off with a slow resonant correction, or (as in the letter's chains) a
@@ -163,7 +163,7 @@ def fit_beat_note(
             r = (k * np.abs(transfer_function(f, p)) - y) / sig
         return np.where(np.isfinite(r), r, 1e6)
 
-    starts = [start] if start is not None else _default_starts(f, y, variant)
+    starts = [start] if start is not None else default_starts(f, y, variant)
     if fixed is not None:
         starts = [
             replace(fixed, **{n: getattr(s, n) for n in free}, variant=variant) for s in starts

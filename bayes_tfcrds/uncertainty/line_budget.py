@@ -59,6 +59,7 @@ from bayes_tfcrds.fit.h_calibration import (
     free_order_weight,
     h_model_forms,
 )
+from bayes_tfcrds.fit.h_identification import identification_grid, identify_h
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import check_overlap, check_t_cuts, doppler_of
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
@@ -189,6 +190,8 @@ class BudgetResult:
     tau_table: list = field(default_factory=list, repr=False)
     refined: object = field(default=None, repr=False)  # the refinement update (tf-crds)
     monte_carlo: BudgetMonteCarlo | None = None  # JCGM 101 of A, S(T_ref), A/A_ref (SI)
+    # which H parameters the data identify (tf-crds): fit.h_identification.HIdentification
+    identification: object = field(default=None, repr=False)
 
     def __post_init__(self):
         object.__setattr__(self, "summary", BudgetSummary(self.summary))
@@ -1431,7 +1434,7 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
     tf = options.method == "tf-crds"
     clock = StageClock(9 if tf else 6, f"budget {config.name} ({options.posterior})")
     runs = {}
-    h_star = h_draws = refined = h_parts = beat = None
+    h_star = h_draws = refined = h_parts = beat = ident = None
     names = BEAT_FREE  # the sampled H parameters (n_r too when the beat note asks for it)
     if tf:  # 1. H
         choice = _h_forms(inp)
@@ -1442,6 +1445,14 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
         names = h_parts["names"]
         if h_run is not None:
             runs["h"] = h_run
+        # the other descriptions of Eq. 2 that give this H(f): which parameters are identified
+        ident = identify_h(
+            h_star,
+            h_draws,
+            names,
+            identification_grid(config.ringdowns.time_s),
+            starts=tuple(f.params for f in (beat, *beat.alternatives)),
+        )
         clock.done("H posterior")
     dt = _decay_times(inp, h_star)  # 2. decay times
     clock.done("decay times")
@@ -1505,6 +1516,8 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
         summary["transfer_function"]["refined"] = list(refined.free)
         summary["transfer_function"]["refined_asked"] = list(options.refine_free)
         summary["transfer_function"].update(_n_r_record(h_draws, names))
+    if ident is not None:
+        summary["transfer_function"]["identification"] = ident.to_dict()
     _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
     summary["priors"] = priors_summary(runs)
     clock.done("budgets")
@@ -1528,4 +1541,5 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
         tau_table=tau_table,
         refined=refined,
         monte_carlo=mc,
+        identification=ident,
     )

@@ -256,6 +256,9 @@ def write_outputs(
     refinement = (result.summary.get("transfer_function") or {}).get("refinement")
     if refinement:
         md += "\n\n" + refinement_markdown(refinement)
+    ident = (result.summary.get("transfer_function") or {}).get("identification")
+    if ident:
+        md += "\n\n" + identification_markdown(ident)
     if result.summary.get("noise"):
         md += "\n\n" + noise_markdown(result.summary["noise"])
     if result.summary.get("instrument"):
@@ -489,6 +492,32 @@ def refinement_markdown(refinement: dict) -> str:
         f"Joint tension chi2 = {refinement['tension_chi2']:.2f} ({refinement['tension_dof']} dof, "
         f"p = {refinement['tension_p']:.3g})" + (finding if refinement["in_tension"] else "")
     )
+    return "\n".join(rows)
+
+
+def identification_markdown(ident: dict) -> str:
+    """Which H parameters the data identify, with the other descriptions of the same H(f)."""
+    rows = ["## H: parameters the data identify", ""]
+    if not ident["not_identified"]:
+        rows.append(
+            "Every sampled H parameter: no other description of Eq. 2 gives the same H(f) within "
+            f"its uncertainty (largest |H - H*|/u(H) allowed: {ident['threshold_max_z']:.2f})."
+        )
+        return "\n".join(rows)
+    rows.append(
+        f"**Not identified: {', '.join(ident['not_identified'])}.** The beat note and the "
+        "ring-downs see H(f) only; these descriptions of Eq. 2 give the reported H(f) within its "
+        "uncertainty, with the poles shared out differently between the two paths. H(f), the "
+        "decay times and A do not depend on the choice; the u of the parameters named describes "
+        "the reported description only."
+    )
+    rows.append("")
+    names = [k for k in ident["descriptions"][0] if k not in ("max_z", "differs_in")]
+    rows.append("| " + " | ".join(names) + " | max abs(H - H*)/u(H) | differs in |")
+    rows.append("|" + "---|" * (len(names) + 2))
+    for d in ident["descriptions"]:
+        vals = " | ".join(format(d[n], ".6g") for n in names)
+        rows.append(f"| {vals} | {d['max_z']:.2f} | {', '.join(d['differs_in'])} |")
     return "\n".join(rows)
 
 

@@ -307,3 +307,47 @@ def test_strata_keys_are_refused_outside_a_coverage_study(tmp_path):
     bad.write_text('[study]\nname = "x"\nkind = "coverage"\n[campaign]\nnoise = ["pink"]\n')
     with pytest.raises(StudyError, match="noise"):
         load_study(bad)
+
+
+def test_an_f_c_the_budget_calls_not_identified_is_left_out_of_its_coverage_only():
+    # 60 campaigns with calibrated pulls, and 6 where the budget reported f_c as not identified
+    # and the reported description sits 800 u from the truth's (a label switch)
+    rng = np.random.default_rng(4)
+
+    def rec(i, identified):
+        q = {k: {"pull": float(rng.standard_normal()), "cdf": 0.5} for k in cs.QUANTITIES}
+        if not identified:
+            q["f_c"].update(pull=800.0, cdf=1.0, identified=False, truth_in_a_description=True)
+        return {
+            "index": i,
+            "status": "ok",
+            "stratum": {"chain": "zoo", "noise": "white"},
+            "quantities": q,
+        }
+
+    recs = [rec(i, i % 10 != 3) for i in range(60)]
+    assert cs.summarise(recs, "f_c")["n"] == 54 and cs.summarise(recs, "A")["n"] == 60
+    assert cs.summarise(recs, "f_c")["sd_pull"] < 2  # the 800 u pulls are not in it
+    row = cs.strata_table(recs)[0]["quantities"]
+    assert row["f_c"]["n"] == 54 and row["A"]["n"] == 60
+    assert not cs.counted(recs[3], "f_c") and cs.counted(recs[3], "A")
+    assert cs.counted(recs[4], "f_c")  # a record without the flag (identified) counts
+
+
+def test_the_truth_of_an_unidentified_f_c_is_looked_for_in_every_description():
+    from bayes_tfcrds.fit.h_identification import HDescription, HIdentification
+    from bayes_tfcrds.physics.transfer_function import TFParams
+
+    names = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")
+    twin = HDescription(TFParams(2.87e6, 0.026, 5e5, 0.17), 0.1, (0.05, 0.01, 2.0, 2.0), names)
+    ident = HIdentification(names, TFParams(8.6e4, 37.0, 4e8, 0.007), 4.0, (twin,), names[:2])
+    entry = {"pull": 846.0}  # the reported f_c, 86 kHz, against a truth of 2.87 MHz
+    got = cs._f_c_identification(ident, 2.866e6, entry)
+    assert got == {
+        "identified": False,
+        "descriptions_f_c_hz": [2.87e6],
+        "truth_in_a_description": True,
+    }
+    # a truth 20 % from the twin is 4 of its u (5 % in log f_c) away: in no description
+    assert not cs._f_c_identification(ident, 2.87e6 * 1.2, entry)["truth_in_a_description"]
+    assert cs._f_c_identification(None, 2.866e6, entry) == {"identified": True}

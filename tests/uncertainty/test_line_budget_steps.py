@@ -188,3 +188,26 @@ def test_monte_carlo_of_the_s_model_agrees_with_the_gum_budget():
     assert mc.line_area.u == pytest.approx(budget_a.combined_u, rel=0.015)
     # near-normal output: k from the MC interval close to 1.96 (GUM k = 2 is 2 % wider)
     assert mc.intensity.k == pytest.approx(1.96, abs=0.03)
+
+
+def test_budget_md_names_the_parameters_the_data_do_not_identify():
+    from bayes_tfcrds.uncertainty.outputs import identification_markdown
+
+    ident = {
+        "not_identified": ["f_c_hz", "a_r"],
+        "threshold_max_z": 4.5,
+        "descriptions": [
+            {
+                "f_c_hz": 2.87e6,
+                "a_r": 0.026,
+                "f_r_hz": 5e5,
+                "gamma_r": 0.17,
+                "max_z": 0.07,
+                "differs_in": ["f_c_hz", "a_r"],
+            }
+        ],
+    }
+    md = identification_markdown(ident)
+    assert "**Not identified: f_c_hz, a_r.**" in md and "| 2.87e+06 | 0.026 |" in md
+    ident.update(not_identified=[], descriptions=[])
+    assert "Every sampled H parameter" in identification_markdown(ident)

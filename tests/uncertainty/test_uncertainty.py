@@ -59,6 +59,10 @@ def test_budget_command_writes_every_output_and_passes_the_gates(small_bundle, t
     ref = s["transfer_function"]["refinement"]["parameters"]["f_c_hz"]
     assert ref["refined_u"] < ref["beat_note_u"] and np.isfinite(ref["z"])
     assert "H: beat note updated by the ring-downs" in (out / "budget.md").read_text()
+    # a preset chain (underdamped resonance): one description of H, every parameter identified
+    ident = s["transfer_function"]["identification"]
+    assert ident["not_identified"] == [] and ident["descriptions"] == []
+    assert "H: parameters the data identify" in (out / "budget.md").read_text()
     form = s["transfer_function"]["model_form"]
     assert 0 <= form["weight_n_r_free"] < 0.5 and not form["asks_for_free_order"]  # n_r = 2 truth
     for f in (

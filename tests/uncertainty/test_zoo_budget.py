@@ -56,3 +56,19 @@ def test_line_area_and_decay_times_agree_with_the_truth(pole_budget):
     # 2 u covers 95 % of points when u is right; 80 % leaves room for 19 correlated points
     assert np.mean(np.abs(pulls) < 2) >= 0.8 and np.all(np.abs(pulls) < 4), pulls
     assert all(r[4] > 0 for r in rows)  # the H part of u(tau) is there
+
+
+def test_f_c_either_holds_the_truth_or_is_reported_as_not_identified(pole_budget):
+    # f_c is a label of Eq. 2: where another description gives the same H(f) the budget must say
+    # so; where it does not, the reported f_c must be the truth's within its u (4 u: one draw)
+    _, truth, res = pole_budget
+    tf = res.summary["transfer_function"]
+    ident = tf["identification"]
+    f_true = truth["configs"]["Z"]["f_c_hz"]
+    if "f_c_hz" in ident["not_identified"]:
+        found = [tf["f_c_hz"]] + [d["f_c_hz"] for d in ident["descriptions"]]
+        assert min(abs(np.log(f / f_true)) for f in found) < 0.1, (found, f_true)
+        assert res.identification.lines()
+    else:
+        u = np.std(res.samples["h_draws"][:, BEAT_FREE.index("f_c_hz")])
+        assert abs(tf["f_c_hz"] - f_true) < 4 * u, (tf["f_c_hz"], u, f_true)
