@@ -7,6 +7,8 @@ within its uncertainty: a slow pole can be the main path's f_c beside a strong r
 fast one, or a weak resonant tail beside a fast f_c. Both are valid chains; no measurement of H
 tells them apart. H(f), the decay times and A do not depend on the choice, but a parameter such
 as f_c does, and its posterior sd then describes only the description the sampler settled in.
+The check compares H where it shapes a decay (1 kHz to the ring-downs' Nyquist frequency); a
+beat note reaching further sees the descriptions there too, through the posterior's draws.
 
 :func:`identify_h` fits Eq. 2 to the posterior's H(f) from many starts (both regimes, either sign
 of A_r), keeps every fit whose H lies inside the posterior's own cloud of H(f), and names the
@@ -21,6 +23,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import optimize
 
+from bayes_tfcrds.fit import refine
 from bayes_tfcrds.fit.beat_note import default_starts
 from bayes_tfcrds.physics.transfer_function import SUPPORT, TFParams, transfer_function_array
 
@@ -63,6 +66,7 @@ class HIdentification:
     not_identified: tuple
 
     def identified(self, name: str) -> bool:
+        """Whether no other description of the same H(f) lies clear of the centre in ``name``."""
         return name not in self.not_identified
 
     def lines(self) -> list:
@@ -82,6 +86,7 @@ class HIdentification:
         ]
 
     def to_dict(self) -> dict:
+        """JSON-ready: budget.json's ``transfer_function.identification``."""
         return {
             "not_identified": list(self.not_identified),
             "threshold_max_z": self.threshold,
@@ -113,17 +118,17 @@ def identification_grid(time_s) -> np.ndarray:
 
 
 def to_sample(names, values) -> np.ndarray:
-    """Parameters in the search space: log of the positive ones, A_r as it is."""
-    v = np.asarray(values, float)
-    logp = np.array([n != "a_r" for n in names])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.where(logp, np.log(np.where(logp, v, 1.0)), v)
+    """Natural values to the search space: log of the positive parameters, A_r as it is.
+
+    :func:`fit.refine.to_sample` with the parameters along the last axis, as draws
+    (n, len(names)) hold them.
+    """
+    return refine.to_sample(names, np.asarray(values, float).T).T
 
 
 def from_sample(names, phi) -> np.ndarray:
-    logp = np.array([n != "a_r" for n in names])
-    with np.errstate(over="ignore"):
-        return np.where(logp, np.exp(phi), phi)
+    """:func:`fit.refine.from_sample` with the parameters along the last axis."""
+    return refine.from_sample(names, np.asarray(phi, float).T).T
 
 
 def _h_of(f_hz, centre: TFParams, names, values) -> np.ndarray:
@@ -156,6 +161,8 @@ def identify_h(centre: TFParams, draws, names, f_hz, starts=()) -> HIdentificati
     h_c = _h_of(f, centre, names, centre.as_vector(names))[0]
     h_d = _h_of(f, centre, names, draws)
     ok = np.all(np.isfinite(h_d), axis=1)
+    if not ok.any():  # the posterior's support keeps H finite: this is a caller's error
+        raise ValueError("no posterior draw of H is finite: nothing to compare descriptions with")
     # u(H) from the draws, floored at 1e-9 of |H| so that a part known exactly (Im H at 0 Hz)
     # cannot make a round-off difference look significant
     floor = 1e-9 * np.maximum(np.abs(h_c), 1e-12)
@@ -163,6 +170,7 @@ def identify_h(centre: TFParams, draws, names, f_hz, starts=()) -> HIdentificati
     u_im = np.maximum(np.std(h_d[ok].imag, axis=0), floor)
 
     def z_of(h):
+        """H's difference from the centre in units of u(H), real parts then imaginary parts."""
         return np.concatenate([(h.real - h_c.real) / u_re, (h.imag - h_c.imag) / u_im], axis=-1)
 
     threshold = max(

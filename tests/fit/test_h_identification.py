@@ -72,7 +72,7 @@ def test_an_underdamped_resonance_leaves_every_parameter_identified(centre, sd):
 
 
 def test_a_cloud_too_tight_for_the_twin_identifies_f_c():
-    # the twin is close: with every spread 30 times smaller it still matches H within 2.4 u(H);
+    # the twin is close: with every spread 30 times smaller it still matches H within 2.4 u(H)
     # with H known 100 times better than the posterior above, the data tell the two apart
     tight = tuple(s / 100 for s in SD_WEAK)
     res = identify_h(WEAK_OVERDAMPED, cloud(WEAK_OVERDAMPED, tight), NAMES, F_HZ)

@@ -317,7 +317,15 @@ def test_an_f_c_the_budget_calls_not_identified_is_left_out_of_its_coverage_only
     def rec(i, identified):
         q = {k: {"pull": float(rng.standard_normal()), "cdf": 0.5} for k in cs.QUANTITIES}
         if not identified:
-            q["f_c"].update(pull=800.0, cdf=1.0, identified=False, truth_in_a_description=True)
+            q["f_c"].update(
+                pull=800.0,
+                cdf=1.0,
+                identified=False,
+                truth_in_a_description=True,
+                truth=2.87e6,
+                estimate=8.6e4,
+                descriptions_f_c_hz=[2.87e6],
+            )
         return {
             "index": i,
             "status": "ok",
@@ -332,6 +340,24 @@ def test_an_f_c_the_budget_calls_not_identified_is_left_out_of_its_coverage_only
     assert row["f_c"]["n"] == 54 and row["A"]["n"] == 60
     assert not cs.counted(recs[3], "f_c") and cs.counted(recs[3], "A")
     assert cs.counted(recs[4], "f_c")  # a record without the flag (identified) counts
+
+    class Rep:  # the report's calls, recorded
+        def __init__(self):
+            self.calls = []
+
+        def add_summary(self, *a):
+            self.calls.append(a)
+
+        def add_table(self, *a, **k):
+            self.calls.append(a)
+
+    rep = Rep()
+    got = cs._not_identified_report(recs, rep)
+    assert got["campaigns"] == [3, 13, 23, 33, 43, 53] and got["truth_in_a_description"] == 6
+    # the unconditional coverage is given too: the six 800 u pulls are misses in it
+    every = got["f_c_all_campaigns"]
+    assert every["n"] == 60 and every["coverage_95"] <= 54 / 60
+    assert "6 of 60 campaigns" in rep.calls[0][1]
 
 
 def test_the_truth_of_an_unidentified_f_c_is_looked_for_in_every_description():
