@@ -98,7 +98,7 @@ def run_chain(args) -> dict:
         f_c_z=ref["z"],
         # f_c against the truth, where the budget says the data identify it (fit.h_identification)
         f_c_identified="f_c_hz"
-        not in summary["transfer_function"]["identification"]["not_identified"],
+        not in summary["transfer_function"].get("identification", {}).get("not_identified", ()),
         f_c_pull=float(
             (summary["transfer_function"]["f_c_hz"] - tf.f_c_hz)
             / np.std(res.samples["h_draws"][:, list(res.samples["h_names"]).index("f_c_hz")])
