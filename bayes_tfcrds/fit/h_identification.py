@@ -25,7 +25,7 @@ from scipy import optimize
 
 from bayes_tfcrds.fit import refine
 from bayes_tfcrds.fit.beat_note import default_starts
-from bayes_tfcrds.physics.transfer_function import SUPPORT, TFParams, transfer_function_array
+from bayes_tfcrds.physics.transfer_function import SUPPORT, TFParams, transfer_function_of_draws
 
 #: separation, in combined standard uncertainties, beyond which two descriptions differ in a
 #: parameter (the convention of the beat-note modes: 3 sigma)
@@ -132,20 +132,13 @@ def from_sample(names, phi) -> np.ndarray:
 
 
 def _h_of(f_hz, centre: TFParams, names, values) -> np.ndarray:
-    """H(f) for each row of ``values`` (n, len(names)), the others at ``centre``; shape (n, m)."""
-    v = np.atleast_2d(values)
-    cols = {n: getattr(centre, n) for n in ("f_c_hz", "a_r", "f_r_hz", "gamma_r", "n_r")}
-    cols.update({n: v[:, k][:, None] for k, n in enumerate(names)})
+    """H(f) for each row of ``values`` (n, len(names)), the others at ``centre``; shape (n, m).
+
+    Overflow and invalid values are silenced: a least-squares step may try an extreme point,
+    whose non-finite residuals are then replaced by a large number.
+    """
     with np.errstate(all="ignore"):
-        return transfer_function_array(
-            f_hz[None, :],
-            cols["f_c_hz"],
-            cols["a_r"],
-            cols["f_r_hz"],
-            cols["gamma_r"],
-            cols["n_r"],
-            centre.variant,
-        )
+        return transfer_function_of_draws(f_hz, centre, names, values)
 
 
 def identify_h(centre: TFParams, draws, names, f_hz, starts=()) -> HIdentification:

@@ -122,6 +122,20 @@ def transfer_function_array(
     return np.where(negative, np.conj(h), h)
 
 
+def transfer_function_of_draws(f_hz, centre: TFParams, names, draws) -> np.ndarray:
+    """Normalised H(f) of every posterior draw in one vectorised call; shape (n, len(f_hz)).
+
+    ``draws`` (n, len(names)) in natural units; the parameters not in ``names`` stay at
+    ``centre``. Frequencies in Hz.
+    """
+    d = np.atleast_2d(np.asarray(draws, float))
+    cols = {n: getattr(centre, n) for n in PARAM_NAMES}
+    cols.update({n: d[:, i : i + 1] for i, n in enumerate(names)})
+    return transfer_function_array(
+        np.asarray(f_hz, float)[None, :], *(cols[n] for n in PARAM_NAMES), centre.variant
+    )
+
+
 def transfer_function_derivatives(f_hz, params: TFParams, names, rel_step: float = 1e-6):
     """d H_normalised / d theta for each parameter in ``names``, shape (len(names), *f.shape).
 

@@ -32,10 +32,9 @@ from bayes_tfcrds.physics.forward import (
     model_grids,
 )
 from bayes_tfcrds.physics.transfer_function import (
-    PARAM_NAMES,
     TFParams,
     transfer_function,
-    transfer_function_array,
+    transfer_function_of_draws,
 )
 
 
@@ -185,18 +184,7 @@ def h_change(draws, names, centre: TFParams):
     draws = np.atleast_2d(np.asarray(draws, float))
 
     def of(f_hz):
-        cols = {n: np.full((draws.shape[0], 1), getattr(centre, n)) for n in PARAM_NAMES}
-        for i, n in enumerate(names):
-            cols[n] = draws[:, i : i + 1]
-        h = transfer_function_array(
-            np.asarray(f_hz)[None, :],
-            cols["f_c_hz"],
-            cols["a_r"],
-            cols["f_r_hz"],
-            cols["gamma_r"],
-            cols["n_r"],
-            centre.variant,
-        )
+        h = transfer_function_of_draws(f_hz, centre, names, draws)
         return h - transfer_function(f_hz, centre)[None, :]
 
     return of

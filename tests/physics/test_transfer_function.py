@@ -216,3 +216,26 @@ def test_a_beat_note_that_eq2_cannot_fit_is_said(caplog):
         with caplog.at_level(logging.WARNING, logger="bayes_tfcrds.fit.h_calibration"):
             beat_note_fit(cfg)
         assert ("does not describe this beat note" in caplog.text) is said
+
+
+def test_h_of_draws_is_h_of_each_draw():
+    # the vectorised call against one transfer_function call per draw: the same arithmetic,
+    # element by element, so equal to the last bit
+    from bayes_tfcrds.physics.transfer_function import transfer_function_of_draws
+
+    centre = TFParams(1.7e4, 17.0, 5.2e6, 0.78, 1.9)
+    names = ("f_c_hz", "a_r", "n_r")
+    rng = np.random.default_rng(3)
+    draws = np.column_stack(
+        [
+            1.7e4 * np.exp(0.01 * rng.standard_normal(5)),
+            17 + rng.standard_normal(5),
+            1.9 + 0.05 * rng.standard_normal(5),
+        ]
+    )
+    f = np.array([-2e6, 0.0, 1e3, 1e6, 2.5e7])
+    got = transfer_function_of_draws(f, centre, names, draws)
+    for row, d in zip(got, draws):
+        want = transfer_function(f, replace(centre, **dict(zip(names, d))))
+        assert np.array_equal(row, want)
+    assert got.shape == (5, 5)
