@@ -192,6 +192,8 @@ def _starts(centre, f, h_c, extra) -> list:
     grid = default_starts(f, np.abs(h_c), centre.variant)
     out = [replace(s, n_r=centre.n_r) for s in grid]
     out += [replace(s, variant=centre.variant) for s in extra]
+    # the A_r mirror -A_r/(1 + 2 A_r) nearly repeats |H| (fit.h_calibration.beat_note_fit): a
+    # start on the other side of A_r = 0, which the regime grid reaches only for weak paths
     a = centre.a_r
     if abs(1 + 2 * a) > 1e-3:
         out.append(replace(centre, a_r=float(np.clip(-a / (1 + 2 * a), -0.98, 1e4))))
@@ -220,7 +222,8 @@ def _describe(start, names, f, centre, z_of, threshold) -> HDescription | None:
         params = base.with_vector(from_sample(names, sol.x), names)
     except ValueError:
         return None
-    # the sd each parameter keeps under H's uncertainty (Gauss-Newton, z is in units of u)
+    # the sd each parameter keeps under H's uncertainty (Gauss-Newton, z is in units of u); a
+    # direction H does not see (curvature below 1e-12) gets sd 1e6: free, never "apart"
     jtj = sol.jac.T @ sol.jac
     lam, vec = np.linalg.eigh(0.5 * (jtj + jtj.T))
     cov = (vec / np.maximum(lam, 1e-12)) @ vec.T
