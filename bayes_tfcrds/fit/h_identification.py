@@ -107,14 +107,14 @@ class HIdentification:
         }
 
 
-def identification_grid(time_s) -> np.ndarray:
+def identification_grid(time_s, n: int = IDENTIFY_FREQUENCIES) -> np.ndarray:
     """The frequencies (Hz) at which two descriptions of H must agree.
 
-    IDENTIFY_FREQUENCIES log-spaced from 1 kHz to the Nyquist frequency of the ring-downs'
-    sampling ``time_s`` (s): the band in which H shapes a decay.
+    ``n`` log-spaced from 1 kHz to the Nyquist frequency of the ring-downs' sampling ``time_s``
+    (s): the band in which H shapes a decay (the H sampler's gates use the same band).
     """
     nyquist = 0.5 / float(time_s[1] - time_s[0])
-    return np.logspace(3.0, np.log10(nyquist), IDENTIFY_FREQUENCIES)
+    return np.logspace(3.0, np.log10(nyquist), n)
 
 
 def to_sample(names, values) -> np.ndarray:

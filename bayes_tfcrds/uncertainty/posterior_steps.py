@@ -21,6 +21,7 @@ from bayes_tfcrds.fit.h_calibration import (
     beat_note_fit,
     refine_on_records,
 )
+from bayes_tfcrds.fit.h_identification import identification_grid
 from bayes_tfcrds.fit.refine import (
     HPrior,
     from_sample,
@@ -380,8 +381,7 @@ def h_predictions(post, ringdowns):
     Eq. 2 may trade roles (an overdamped resonance is two real poles beside f_c) without
     changing H, which would fail a parameter R-hat for no reason.
     """
-    nyquist = 0.5 / float(ringdowns.time_s[1] - ringdowns.time_s[0])
-    f = np.logspace(3, np.log10(nyquist), H_GATE_FREQUENCIES)
+    f = identification_grid(ringdowns.time_s, H_GATE_FREQUENCIES)
 
     def derived(x):
         p = post.to_params(x)
