@@ -107,3 +107,41 @@ def good_bundle_path(tmp_path):
     path = tmp_path / "good.h5"
     write_good_bundle(path)
     return path
+
+
+# --------------------------------------------------------------------------- scheduling
+# The suite runs on two xdist workers (``pytest -n 2``, ``--dist loadgroup`` from pyproject).
+# Two things keep both cores busy to the end: tests that share a module- or class-scoped fixture
+# run on one worker (so an expensive fixture, such as the coverage study's 40 campaigns, is built
+# once, not once per worker), and long work is handed out first (``slow(seconds=...)``), so the
+# run does not end with one worker on a long test while the other is idle. Results do not depend
+# on the order: every test seeds its own generators.
+
+
+def _shared_fixture_scope(item) -> bool:
+    info = getattr(item, "_fixtureinfo", None)
+    if info is None:
+        return False
+    return any(
+        d.scope in ("module", "class") for defs in info.name2fixturedefs.values() for d in defs
+    )
+
+
+def _seconds(item) -> float:
+    mark = item.get_closest_marker("slow")
+    return float(mark.kwargs.get("seconds", 30.0)) if mark is not None else 0.0
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config, items):
+    """Group tests that share a module/class fixture; order work units longest first."""
+    unit_of, cost = {}, {}
+    for item in items:
+        unit = item.nodeid
+        if _shared_fixture_scope(item):
+            unit = item.nodeid.split("::")[0]
+            item.add_marker(pytest.mark.xdist_group(unit))
+        unit_of[item.nodeid] = unit
+        cost[unit] = cost.get(unit, 0.0) + _seconds(item)
+    # stable: within a unit, and among units of equal cost, collection order is kept
+    items.sort(key=lambda it: -cost[unit_of[it.nodeid]])
