@@ -37,7 +37,6 @@ def tour(tmp_path_factory):
     return namespace, out
 
 
-@pytest.mark.slow(seconds=185)
 def test_tour_runs_and_tf_crds_removes_the_chains_bias(tour):
     """D4's chain biases plain CRDS at t_cut = 8 us by about -8 % (the letter, and the preset
     table: -7.7 %); TF-CRDS's budget must agree with CMDS within 4 of its u_c (a false alarm

@@ -152,20 +152,13 @@ def test_each_builder_changes_what_its_effect_changes(name, tmp_path):
         assert np.all(np.abs(d_sig[:, t < 0]) < 1e-12)
 
 
-def _slow(seconds):
-    """Scheduling only (tests/conftest.py): about this long on one core."""
-    return pytest.mark.slow(seconds=seconds)
-
-
 @pytest.mark.parametrize(
     ("name", "seed", "right"),
     [
-        pytest.param("static_nonlinearity", 21, ["static_nonlinearity"], marks=_slow(17)),
-        pytest.param("etalon", 21, ["etalon"], marks=_slow(35)),
-        pytest.param("second_mode", 11, ["second_mode"], marks=_slow(24)),
-        pytest.param(
-            "transfer_function", [2, 11], ["transfer_function", "window_history"], marks=_slow(120)
-        ),
+        ("static_nonlinearity", 21, ["static_nonlinearity"]),
+        ("etalon", 21, ["etalon"]),
+        ("second_mode", 11, ["second_mode"]),
+        ("transfer_function", [2, 11], ["transfer_function", "window_history"]),
     ],
 )
 def test_discovery_names_an_effect_written_in_another_form(name, seed, right):
@@ -187,13 +180,7 @@ def test_discovery_names_an_effect_written_in_another_form(name, seed, right):
         assert abs(p["detuning_hz"]["value"] - 61e6) < 4 * p["detuning_hz"]["u"], p
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param("speed_dependence", marks=_slow(125)),
-        pytest.param("hard_collisions", marks=_slow(70)),
-    ],
-)
+@pytest.mark.parametrize("name", ["speed_dependence", "hard_collisions"])
 def test_line_shape_written_in_another_form_is_named(name):
     # the power law (width and shift ~ v^m) is named by the family's power-law member, with m and
     # the shift's speed dependence recovered; the soft collisions are named too, but in the

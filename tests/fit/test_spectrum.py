@@ -22,7 +22,6 @@ def _g():
     return profile("qsdhcp", NU - NU0, 0.0, GD, **SHAPE)
 
 
-@pytest.mark.slow(seconds=35)
 def test_pulls_crds_cmds_and_joint():
     rng = np.random.default_rng(42)
     g = _g()

@@ -411,7 +411,6 @@ def reference(tmp_path_factory):
 
 
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGKILL], ids=["SIGINT", "SIGKILL"])
-@pytest.mark.slow(seconds=35)
 def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_path, sig):
     bundle, ref = reference
     out = tmp_path / "run"
@@ -454,7 +453,6 @@ def _chains_rows(path, e):
         return g["chain"][: int(g.attrs["iteration"])]
 
 
-@pytest.mark.slow(seconds=33)
 def test_sigkill_while_writing_outputs_leaves_no_half_written_file(reference, tmp_path):
     """Killed as soon as the first output appears, i.e. while the others are being written (the
     corner plots and netCDF files take seconds). Whatever is there is whole; a rerun completes

@@ -78,7 +78,6 @@ def test_truths_lie_inside_the_analysis_priors():
         assert d.pressure_pa[0] <= t.pressure_pa <= d.pressure_pa[1]
 
 
-@pytest.mark.slow(seconds=290)
 def test_coverage_and_ranks_within_binomial_limits(study_run):
     _, _, numbers, _, _ = study_run
     recs = numbers["records"]

@@ -31,7 +31,6 @@ def small_bundle(tmp_path_factory):
     return path, t
 
 
-@pytest.mark.slow(seconds=40)
 def test_budget_command_writes_every_output_and_passes_the_gates(small_bundle, tmp_path):
     path, truth = small_bundle
     out = tmp_path / "D2"
@@ -111,7 +110,6 @@ def test_crds_budget_shows_the_letter_bias(small_bundle):
     assert abs(tf["ratio"]["value"] - 1) < 3 * tf["ratio"]["u"]
 
 
-@pytest.mark.slow(seconds=220)
 def test_stated_u_matches_the_scatter_over_simulations():
     # the small version of benchmarks/budget_replicas.py (60 replicas, about 10 min): 20 replicas
     # hold the sample sd to 16 %, so the band is the chi distribution's at 3 sigma (0.55 to 1.50).
@@ -132,7 +130,6 @@ def test_the_sd_band_holds_the_sample_sd_of_normal_samples_as_often_as_it_says()
     assert 196 <= below <= 344 and 196 <= above <= 344, (lo, hi, below, above)
 
 
-@pytest.mark.slow(seconds=210)
 def test_noise_row_matches_the_noise_only_scatter():
     # the same beat-note measurement in every replica: only ring-down noise varies, and it reaches
     # A through the line fit and through the refined H (the two ring-down rows of the budget);

@@ -29,7 +29,6 @@ def pole_budget():
     return bundle, truth, res
 
 
-@pytest.mark.slow(seconds=45)
 def test_budget_passes_and_keeps_every_draw_physical(pole_budget):
     _, _, res = pole_budget
     assert res.passed, res.status
