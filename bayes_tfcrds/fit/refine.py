@@ -52,7 +52,7 @@ from bayes_tfcrds.physics.transfer_function import (
     TFParams,
     outside_support,
     transfer_function,
-    transfer_function_array,
+    transfer_function_of_draws,
 )
 
 POSITIVE = frozenset({"f_c_hz", "f_r_hz", "gamma_r", "n_r"})  # refined in log space
@@ -737,9 +737,6 @@ def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -
         group = np.zeros_like(group)
     h_star = {}
     out = np.zeros(draws.shape[0])
-    full = {n: np.full((draws.shape[0], 1), getattr(tf, n)) for n in PARAM_NAMES}
-    for i, n in enumerate(names):
-        full[n] = draws[:, i : i + 1]
     for c0 in range(0, draws.shape[0], chunk):
         sl = slice(c0, c0 + chunk)
         dm = np.zeros((min(chunk, draws.shape[0] - c0), *wm.shape))
@@ -750,14 +747,7 @@ def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -
             f_hz = np.arange(grid.n_fft // 2 + 1) / (grid.n_fft * grid.dt_s)
             if gi not in h_star:
                 h_star[gi] = transfer_function(f_hz, tf)
-            dh = (
-                transfer_function_array(
-                    f_hz[None, :],
-                    *(full[n][sl] for n in PARAM_NAMES),
-                    tf.variant,
-                )
-                - h_star[gi][None, :]
-            )
+            dh = transfer_function_of_draws(f_hz, tf, names, draws[sl]) - h_star[gi][None, :]
             x = input_spectrum(tau[recs], grid)  # (r, nf)
             resp = sfft.irfft(dh[:, None, :] * x[None, :, :], n=grid.n_fft, axis=-1)
             cols_g = np.arange(grid.first_data, grid.n_data) + grid.data_offset
