@@ -447,22 +447,38 @@ def _varpro_tau(cols, y, wm, tau0, max_iter=40, rtol=1e-8, rel_step=1e-6):
         jp = j - (p[:, None, :] @ c)[:, 0]
         return a, r, jp, w
 
+    out = None  # a, r, jp of every row, at the tau returned for it
+
+    def keep(idx, a, r, jp):
+        nonlocal out
+        if out is None:
+            out = (np.empty((n, a.shape[1])), np.empty((n, r.shape[1])), np.empty((n, r.shape[1])))
+        for dst, src in zip(out, (a, r, jp)):
+            dst[idx] = src
+
     for _ in range(max_iter):
         idx = rows[active]
         if idx.size == 0:
             break
         a, r, jp, w = linear(idx, tau[idx])
+        keep(idx, a, r, jp)
         num, den = (w * jp * r).sum(-1), (w * jp * jp).sum(-1)
         ok = np.isfinite(num) & (den > 0)
         step = np.clip(
             np.where(ok, num / np.where(ok, den, 1.0), 0.0), -0.3 * tau[idx], 0.5 * tau[idx]
         )
-        tau[idx] += step
-        done = ok & (np.abs(step) <= rtol * tau[idx])
+        done = ok & (np.abs(step) <= rtol * (tau[idx] + step))
+        # a row that has converged keeps the tau its columns were just computed at: the step
+        # left (<= rtol tau) is far below u(tau), and the final columns need no recomputation
+        tau[idx] += np.where(done, 0.0, step)
         conv[idx[done]] = True
         active[idx[done | ~ok]] = False
-    a, r, jp, w = linear(rows, tau)
-    tau_u = 1.0 / np.sqrt((w * jp * jp).sum(-1))
+    left = rows[active]  # out of iterations: the columns at the last step's tau
+    if left.size:
+        a, r, jp, _ = linear(left, tau[left])
+        keep(left, a, r, jp)
+    a, r, jp = out
+    tau_u = 1.0 / np.sqrt((wm * jp * jp).sum(-1))
     return tau, tau_u, a, r, conv
 
 
