@@ -1,9 +1,10 @@
 """Does the budget's stated u(A) match the scatter of A over simulated campaigns? (60 replicas)
 
-The full version of two tests in ``tests/uncertainty/test_uncertainty.py`` (which run 20
-replicas each, to keep CI short). Each replica simulates the letter's chain D4 on a small
-campaign (21 modes, 4096 samples, 25 averages) with new noise and runs the budget (Laplace
-posterior, t_cut 4 and 8 us), the path the two tests check:
+The first check's small version in CI is the coverage study's test
+(``tests/studies/test_coverage_study.py``, 40 campaigns); the second's is
+``tests/uncertainty/test_uncertainty.py`` (20 replicas). Each replica simulates the letter's chain
+D4 on a small campaign (21 modes, 4096 samples, 25 averages) with new noise and runs the budget
+(Laplace posterior, t_cut 4 and 8 us), the path the two tests check:
 
 * stated u: sd(A) over replicas / mean u_stat(A) inside the chi distribution's 3-sigma band
   (0.73-1.28 for 60 replicas; the sample sd is known to 9 %), and the mean pull within 3 of its

@@ -15,12 +15,15 @@ from tests.uncertainty.replicas import (
     TINY,
     noise_rows_bracket_scatter,
     replicate,
-    scatter_matches_u,
     sd_ratio_band,
 )
 
 SMALL = replace(Campaign(), n_points=31, n_samples=8192, n_avg=10)
-N_REPLICAS = 20  # about 10 s each on one core
+# about 10 s each on one core. The stated u(A) against the scatter of A with new beat notes too is
+# benchmarks/budget_replicas.py (60 replicas); in CI the coverage study's test checks the same u
+# (tests/studies/test_coverage_study.py: 40 campaigns, where a u off by a factor 2 moves the 68 %
+# coverage to 38 or 95 %, outside its binomial band)
+N_REPLICAS = 20
 
 
 @pytest.fixture(scope="module")
@@ -108,16 +111,6 @@ def test_crds_budget_shows_the_letter_bias(small_bundle):
     tf = run_budget(b, b.configs["D4"], FAST, np.random.default_rng(1)).summary
     assert crds["ratio"]["value"] < 0.95 and crds["en"] < -5  # the letter: -8 % for D4
     assert abs(tf["ratio"]["value"] - 1) < 3 * tf["ratio"]["u"]
-
-
-def test_stated_u_matches_the_scatter_over_simulations():
-    # the small version of benchmarks/budget_replicas.py (60 replicas, about 10 min): 20 replicas
-    # hold the sample sd to 16 %, so the band is the chi distribution's at 3 sigma (0.55 to 1.50).
-    # A u off by a factor 2 (a row dropped or counted twice, a sqrt missing) falls outside it.
-    rep = replicate(N_REPLICAS, seed=5, preset="letter-D4", campaign=TINY, options=FAST)
-    check = scatter_matches_u(rep)
-    assert check["ratio_ok"], check
-    assert check["unbiased"], check
 
 
 def test_the_sd_band_holds_the_sample_sd_of_normal_samples_as_often_as_it_says():
