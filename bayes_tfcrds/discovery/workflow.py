@@ -330,14 +330,21 @@ def fit_lines(bundle, config, model: ExperimentModel, nu, tau, tau_u):
     )
 
 
+_CMDS_CACHE: dict = {}
+
+
 def fit_cmds(bundle, config, model: ExperimentModel, line):
-    """CMDS reference A_ref under the same profile; a neighbour line found in CRDS is held fixed."""
+    """CMDS reference A_ref under the same profile; a neighbour line found in CRDS is held fixed.
+
+    Without a neighbour line the fit depends on the CMDS data, the profile and the sample alone,
+    so it is made once per profile and reused: the bootstrap's 40 replicates change only the
+    ring-downs (the CMDS reference is another instrument and is not resampled), and refitting
+    the same spectrum took a quarter of a line-shape discovery.
+    """
     if config.cmds is None:
         return None
     gd = doppler_of(bundle.sample)
     cm = config.cmds
-    fixed = {}
-    extras = ()
     if "neighbour_line" in model.effects:
         extras = ("neighbour_line",)
         fixed = {
@@ -347,16 +354,18 @@ def fit_cmds(bundle, config, model: ExperimentModel, line):
         if "neighbour_width" in model.forms:
             extras += ("neighbour_width",)
             fixed["neighbour_width_scale"] = line.value("neighbour_width_scale")
+        return _fit_cmds(cm, model.profile, gd, bundle.sample.nu0_hz, extras, fixed)
+    key = (id(cm), model.profile, gd, bundle.sample.nu0_hz)
+    if key not in _CMDS_CACHE or _CMDS_CACHE[key][0] is not cm:
+        if len(_CMDS_CACHE) > 32:
+            _CMDS_CACHE.clear()
+        _CMDS_CACHE[key] = (cm, _fit_cmds(cm, model.profile, gd, bundle.sample.nu0_hz, (), {}))
+    return _CMDS_CACHE[key][1]
+
+
+def _fit_cmds(cm, profile, gd, nu0_hz, extras, fixed):
     return fit_spectrum_extended(
-        "dispersion",
-        cm.nu_hz,
-        cm.shift_hz,
-        cm.shift_u_hz,
-        model.profile,
-        gd,
-        bundle.sample.nu0_hz,
-        extras,
-        fixed=fixed,
+        "dispersion", cm.nu_hz, cm.shift_hz, cm.shift_u_hz, profile, gd, nu0_hz, extras, fixed=fixed
     )
 
 
