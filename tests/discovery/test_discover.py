@@ -86,17 +86,18 @@ def test_nonlinearity_inverse_and_unbiased_chi2():
     assert abs(beta_hat) < 3 * sigma, (beta_hat, sigma)
 
 
-@pytest.fixture(scope="module")
-def hidden_runs():
-    return {}
+# every hidden case but the chain itself: H hidden in plain-CRDS data is named in CI by
+# test_hidden_cases_b.py (an Eq. 2 chain of the other regime, from the same plain-CRDS start, which
+# must add H and the window and nothing else); this D2 case (73 s) runs in
+# benchmarks/discovery_confusion.py (5 seeds) with every other case
+CI_CASES = [e for e in HIDDEN_CASES if e != "transfer_function"]
 
 
-@pytest.mark.parametrize("effect", list(HIDDEN_CASES))
-def test_hidden_effect_is_named_first_and_gaps_close(effect, hidden_runs):
+@pytest.mark.parametrize("effect", CI_CASES)
+def test_hidden_effect_is_named_first_and_gaps_close(effect):
     effects, start = HIDDEN_CASES[effect]
     bundle, truth = _bundle(effects, 21)
     res = discover(bundle, "D2", start)
-    hidden_runs[effect] = res
     assert res.effects_added, f"nothing found for hidden {effect}"
     # named first: added, or named beside the added one as indistinguishable (Delta BIC < 2;
     # quadratic speed dependence and soft-collision narrowing in the Doppler regime)
