@@ -1,4 +1,4 @@
-"""A tour of the Python API on a quick simulated campaign (about 2.5 min on one core).
+"""A tour of the Python API on a quick simulated campaign (about 2 min on one core).
 
 Run it as a script, ``python examples/notebook_tour.py``, or open it as a notebook (Jupyter with
 jupytext, VS Code): every ``# %%`` line starts a cell. Figures, the bundle and ``tour.json`` go

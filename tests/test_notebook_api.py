@@ -1,7 +1,7 @@
 """The notebook API: ``examples/notebook_tour.py`` runs, and every result object it makes has a
 text summary, a JSON record (units labelled), an HTML table and a figure whose axes carry units.
 
-The tour is run once (module fixture, about 2.5 min on one core: the quick campaign of
+The tour is run once (module fixture, about 2 min on one core: the quick campaign of
 ``demo --quick`` on chain D4, the Laplace budget and one step of discovery) and its objects are
 checked here.
 """
