@@ -473,8 +473,8 @@ def _varpro_tau(cols, y, wm, tau0, max_iter=40, rtol=1e-8, rel_step=1e-6):
         tau[idx] += np.where(done, 0.0, step)
         conv[idx[done]] = True
         active[idx[done | ~ok]] = False
-    left = rows[active]  # out of iterations: the columns at the last step's tau
-    if left.size:
+    left = rows[active] if out is not None else rows  # out of iterations (or no rows at all)
+    if left.size or out is None:
         a, r, jp, _ = linear(left, tau[left])
         keep(left, a, r, jp)
     a, r, jp = out
