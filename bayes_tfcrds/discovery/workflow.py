@@ -333,6 +333,20 @@ def fit_lines(bundle, config, model: ExperimentModel, nu, tau, tau_u):
 _CMDS_CACHE: dict = {}
 
 
+def _memo(cache: dict, key: tuple, owner, make):
+    """``make()`` kept in ``cache`` under ``key``, whose first entry is ``id(owner)``.
+
+    The entry holds ``owner`` itself, so an id reused by another object after ``owner`` is gone
+    is recognised (the identity check) and never returns a stale result. The cache is emptied
+    past 32 entries: a discovery touches a handful.
+    """
+    if key not in cache or cache[key][0] is not owner:
+        if len(cache) > 32:
+            cache.clear()
+        cache[key] = (owner, make())
+    return cache[key][1]
+
+
 def fit_cmds(bundle, config, model: ExperimentModel, line):
     """CMDS reference A_ref under the same profile; a neighbour line found in CRDS is held fixed.
 
@@ -356,11 +370,7 @@ def fit_cmds(bundle, config, model: ExperimentModel, line):
             fixed["neighbour_width_scale"] = line.value("neighbour_width_scale")
         return _fit_cmds(cm, model.profile, gd, bundle.sample.nu0_hz, extras, fixed)
     key = (id(cm), model.profile, gd, bundle.sample.nu0_hz)
-    if key not in _CMDS_CACHE or _CMDS_CACHE[key][0] is not cm:
-        if len(_CMDS_CACHE) > 32:
-            _CMDS_CACHE.clear()
-        _CMDS_CACHE[key] = (cm, _fit_cmds(cm, model.profile, gd, bundle.sample.nu0_hz, (), {}))
-    return _CMDS_CACHE[key][1]
+    return _memo(_CMDS_CACHE, key, cm, lambda: _fit_cmds(cm, model.profile, gd, key[3], (), {}))
 
 
 def _fit_cmds(cm, profile, gd, nu0_hz, extras, fixed):
@@ -654,14 +664,14 @@ _CAL_CACHE: dict = {}
 def _calibration(config, window, t_cuts):
     """H calibration (beat note + refinement of f_c with ``window``), cached per configuration."""
     key = (id(config), window, tuple(t_cuts))
-    if key not in _CAL_CACHE or _CAL_CACHE[key][0] is not config:
-        if len(_CAL_CACHE) > 16:
-            _CAL_CACHE.clear()
+
+    def make():
         # on a flat beat note (no chain) the refinement's scaling divides 0/0 before it fails;
         # the failure itself is reported by the caller, the warnings would only be noise
         with np.errstate(invalid="ignore", divide="ignore"):
-            _CAL_CACHE[key] = (config, calibrate(config, t_cuts_s=tuple(t_cuts), window=window))
-    return _CAL_CACHE[key][1]
+            return calibrate(config, t_cuts_s=tuple(t_cuts), window=window)
+
+    return _memo(_CAL_CACHE, key, config, make)
 
 
 def _try_transient_effect(bundle, config, ev: Evaluation, effect, with_cov: bool) -> Candidate:
