@@ -317,6 +317,7 @@ def _check_result(code, out_path, command, argv) -> None:
 
 
 # ----------------------------------------------------------------------------- the property
+@pytest.mark.slow
 @settings(
     max_examples=EXAMPLES,
     deadline=None,

@@ -93,6 +93,7 @@ def test_nonlinearity_inverse_and_unbiased_chi2():
 CI_CASES = [e for e in HIDDEN_CASES if e != "transfer_function"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effect", CI_CASES)
 def test_hidden_effect_is_named_first_and_gaps_close(effect):
     effects, start = HIDDEN_CASES[effect]
@@ -137,6 +138,7 @@ def test_nothing_hidden_adds_nothing(seed):
     assert all(g["band"][0] <= g["z"] <= g["band"][1] for g in gaps.values()), gaps
 
 
+@pytest.mark.slow
 def test_two_hidden_effects_are_both_found_through_the_cli(tmp_path):
     from bayes_tfcrds.bundle.writer import save_bundle
     from bayes_tfcrds.cli import main

@@ -152,6 +152,7 @@ def test_each_builder_changes_what_its_effect_changes(name, tmp_path):
         assert np.all(np.abs(d_sig[:, t < 0]) < 1e-12)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("name", "seed", "right"),
     [
@@ -180,6 +181,7 @@ def test_discovery_names_an_effect_written_in_another_form(name, seed, right):
         assert abs(p["detuning_hz"]["value"] - 61e6) < 4 * p["detuning_hz"]["u"], p
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", ["speed_dependence", "hard_collisions"])
 def test_line_shape_written_in_another_form_is_named(name):
     # the power law (width and shift ~ v^m) is named by the family's power-law member, with m and

@@ -22,6 +22,7 @@ def _g():
     return profile("qsdhcp", NU - NU0, 0.0, GD, **SHAPE)
 
 
+@pytest.mark.slow
 def test_pulls_crds_cmds_and_joint():
     rng = np.random.default_rng(42)
     g = _g()

@@ -36,6 +36,7 @@ def _budget_json(bundle, workers, out):
     return res, data
 
 
+@pytest.mark.slow
 def test_two_workers_give_the_same_budget_bit_for_bit(bundle, tmp_path):
     one, d1 = _budget_json(bundle, 1, tmp_path / "one")
     two, d2 = _budget_json(bundle, 2, tmp_path / "two")

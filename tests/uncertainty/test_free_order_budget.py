@@ -99,6 +99,7 @@ def test_a_rational_chain_keeps_n_r_2_and_todays_numbers(preset):
 WEAK_SLOW = TFParams(f_c_hz=2.36e7, a_r=0.0314, f_r_hz=5.58e4, gamma_r=1.43)
 
 
+@pytest.mark.slow
 def test_the_form_row_of_a_weak_slow_resonance_is_sized_by_the_ring_downs_too():
     """The beat note alone leaves n_r loose here; updated by the ring-downs it is pinned at 2.
 

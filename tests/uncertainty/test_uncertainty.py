@@ -123,6 +123,7 @@ def test_the_sd_band_holds_the_sample_sd_of_normal_samples_as_often_as_it_says()
     assert 196 <= below <= 344 and 196 <= above <= 344, (lo, hi, below, above)
 
 
+@pytest.mark.slow
 def test_noise_row_matches_the_noise_only_scatter():
     # the same beat-note measurement in every replica: only ring-down noise varies, and it reaches
     # A through the line fit and through the refined H (the two ring-down rows of the budget);

@@ -9,6 +9,7 @@ once and makes the three checks: as separate tests they ran the 45 s budget on b
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from bayes_tfcrds.fit.h_calibration import BEAT_FREE
 from bayes_tfcrds.physics.transfer_function import SUPPORT
@@ -73,6 +74,7 @@ def _f_c_holds_the_truth_or_is_reported_as_not_identified(pole_budget):
         assert abs(tf["f_c_hz"] - f_true) < 4 * u, (tf["f_c_hz"], u, f_true)
 
 
+@pytest.mark.slow
 def test_budget_on_a_pole_chain_passes_and_holds_the_truth():
     run = _pole_budget()
     _passes_and_keeps_every_draw_physical(run)
