@@ -711,6 +711,24 @@ def _gain(layout, tf, free, rest, tau, w, info, beta, prior_others):
     return -np.linalg.solve(w * a_rr + info, w * a_ro - p_beta), w * a
 
 
+def _draw_independent(layout: _Layout, grid, in_group, tau, amp, tf):
+    """What :func:`ringdown_log_likelihood` needs of one model grid that no H draw changes.
+
+    The rows on ``grid``, their records' positions, the grid's rfft frequencies (Hz), H* there,
+    the records' input spectra X (r, n_freq), the data columns, and each row's B exp(-t_k/tau).
+    """
+    rows = np.nonzero(in_group)[0]
+    ro = layout.rows_of
+    recs, inv = np.unique(ro[rows], return_inverse=True)
+    f_hz = np.arange(grid.n_fft // 2 + 1) / (grid.n_fft * grid.dt_s)
+    x = input_spectrum(tau[recs], grid)
+    cols_g = np.arange(grid.first_data, grid.n_data) + grid.data_offset
+    kink = layout.kink_s[rows][None, :, None]
+    factor = np.exp(-kink / tau[ro[rows]][None, :, None])
+    scale = amp[ro[rows]][None, :, None] * factor
+    return grid, rows, inv, f_hz, transfer_function(f_hz, tf), x, cols_g, scale
+
+
 def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -> np.ndarray:
     """Ring-down log-likelihood of H draws relative to the refined H, -w/2 [chi2(H) - chi2(H*)].
 
@@ -735,27 +753,19 @@ def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -
     grids = model_grids(float(t[0]), float(t[1] - t[0]), t.size, uniq, tf, layout.window)
     if layout.window == "extinction":
         group = np.zeros_like(group)
-    h_star = {}
+    per_grid = [
+        _draw_independent(layout, grids[gi], group == gi, tau, amp, tf) for gi in np.unique(group)
+    ]
     out = np.zeros(draws.shape[0])
     for c0 in range(0, draws.shape[0], chunk):
         sl = slice(c0, c0 + chunk)
         dm = np.zeros((min(chunk, draws.shape[0] - c0), *wm.shape))
-        for gi in np.unique(group):
-            grid = grids[gi]
-            rows = np.nonzero(group == gi)[0]
-            recs, inv = np.unique(ro[rows], return_inverse=True)
-            f_hz = np.arange(grid.n_fft // 2 + 1) / (grid.n_fft * grid.dt_s)
-            if gi not in h_star:
-                h_star[gi] = transfer_function(f_hz, tf)
-            dh = transfer_function_of_draws(f_hz, tf, names, draws[sl]) - h_star[gi][None, :]
-            x = input_spectrum(tau[recs], grid)  # (r, nf)
+        for grid, rows, inv, f_hz, h_star, x, cols_g, scale in per_grid:
+            dh = transfer_function_of_draws(f_hz, tf, names, draws[sl]) - h_star[None, :]
             resp = sfft.irfft(dh[:, None, :] * x[None, :, :], n=grid.n_fft, axis=-1)
-            cols_g = np.arange(grid.first_data, grid.n_data) + grid.data_offset
-            block = np.zeros((dm.shape[0], recs.size, t.size))
+            block = np.zeros((dm.shape[0], x.shape[0], t.size))
             block[:, :, grid.first_data : grid.n_data] = resp[:, :, cols_g]
-            kink = layout.kink_s[rows][None, :, None]
-            factor = np.exp(-kink / tau[ro[rows]][None, :, None])
-            dm[:, rows] = amp[ro[rows]][None, :, None] * factor * block[:, inv]
+            dm[:, rows] = scale * block[:, inv]
         dm *= wm[None] > 0
         ctw = _per_record(layout, np.einsum("nak,cnk,nk->nca", cols, dm, wm))  # (m, c, 3)
         coef = np.einsum("mab,mcb->mca", ctc_inv, ctw)

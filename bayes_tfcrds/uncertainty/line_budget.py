@@ -522,11 +522,38 @@ def h_shifts(
 
     Through each draw's H(f) (function space), in chunks of draws to bound memory.
     """
+    return h_shifts_many([(kernels, n_rows)], draws, h_star, chunk, names)[0]
+
+
+def h_shifts_many(kernel_rows, draws, h_star, chunk: int = 100, names=BEAT_FREE) -> list:
+    """:func:`h_shifts` for several ``(kernels, n_rows)`` over the same H draws, in one pass.
+
+    Each chunk of draws has its H(f) evaluated once per frequency grid, however many kernels use
+    that grid (the decay-time table's t_cuts share the ``extinction`` window's grid); the shifts
+    are those of :func:`h_shifts` to the bit.
+    """
+    if not kernel_rows:  # plain CRDS: no H draws
+        return []
     draws = np.atleast_2d(draws)
-    out = np.zeros((draws.shape[0], n_rows))
+    outs = [np.zeros((draws.shape[0], n_rows)) for _, n_rows in kernel_rows]
     for i in range(0, draws.shape[0], chunk):
-        out[i : i + chunk] = kernels.shifts(h_change(draws[i : i + chunk], names, h_star), n_rows)
-    return out
+        h_of = _once_per_grid(h_change(draws[i : i + chunk], names, h_star))
+        for (kernels, n_rows), out in zip(kernel_rows, outs):
+            out[i : i + chunk] = kernels.shifts(h_of, n_rows)
+    return outs
+
+
+def _once_per_grid(h_of):
+    """``h_of`` (f_hz -> delta_H of a chunk of draws) remembered per frequency grid."""
+    seen = {}
+
+    def of(f_hz):
+        key = (f_hz.size, f_hz.tobytes())
+        if key not in seen:
+            seen[key] = h_of(f_hz)
+        return seen[key]
+
+    return of
 
 
 def _h_split(h_star, h_parts: dict) -> _HSplit:
@@ -1315,24 +1342,34 @@ def _tau_table(inp: _Inputs, dt: _DecayTimes, h_star, h_draws, names=BEAT_FREE) 
     its H(f), first order) about the fit at H*, and the fit's noise u; seconds.
     """
     options, rd, fits = inp.options, inp.config.ringdowns, dt.fits
-    tau_table = []
-    for j, tc in enumerate(dt.t_cuts):
-        ok_j = np.isfinite(fits.tau_s[:, j]) & np.isfinite(fits.tau_u_s[:, j])
-        rows_j = np.nonzero(ok_j)[0]
-        u_h = np.zeros(rows_j.size)
-        if options.method == "tf-crds" and rows_j.size:
-            kern = tau_h_kernels(
+    rows = [
+        np.nonzero(np.isfinite(fits.tau_s[:, j]) & np.isfinite(fits.tau_u_s[:, j]))[0]
+        for j in range(len(dt.t_cuts))
+    ]
+    shifted = [j for j, rows_j in enumerate(rows) if options.method == "tf-crds" and rows_j.size]
+    kernels = [
+        (
+            tau_h_kernels(
                 rd.time_s,
-                np.full(rows_j.size, tc),
-                fits.tau_s[rows_j, j],
-                fits.amplitude_v[rows_j, j],
+                np.full(rows[j].size, dt.t_cuts[j]),
+                fits.tau_s[rows[j], j],
+                fits.amplitude_v[rows[j], j],
                 h_star,
                 options.window,
                 noise_v=rd.fit_noise_v,
-                rows_of=rows_j,
-            )
-            shifts = h_shifts(kern, h_draws, h_star, rows_j.size, names=names)
-            u_h, mean_h = np.std(shifts, axis=0), np.mean(shifts, axis=0)
+                rows_of=rows[j],
+            ),
+            rows[j].size,
+        )
+        for j in shifted
+    ]
+    shifts = dict(zip(shifted, h_shifts_many(kernels, h_draws, h_star, names=names)))
+    tau_table = []
+    for j, tc in enumerate(dt.t_cuts):
+        rows_j = rows[j]
+        u_h = np.zeros(rows_j.size)
+        if j in shifts:
+            u_h, mean_h = np.std(shifts[j], axis=0), np.mean(shifts[j], axis=0)
         else:
             mean_h = np.zeros(rows_j.size)
         for i, uh, dh in zip(rows_j, u_h, mean_h):

@@ -211,3 +211,43 @@ def test_budget_md_names_the_parameters_the_data_do_not_identify():
     assert "**Not identified: f_c_hz, a_r.**" in md and "| 2.87e+06 | 0.026 |" in md
     ident.update(not_identified=[], descriptions=[])
     assert "Every sampled H parameter" in identification_markdown(ident)
+
+
+def test_h_shifts_of_many_kernels_are_each_kernels_own_with_h_evaluated_once_per_grid(
+    monkeypatch,
+):
+    # the decay-time table propagates the same H draws through one kernel per t_cut: H(f) of a
+    # chunk of draws is evaluated once per frequency grid and the shifts stay the same to the bit
+    from bayes_tfcrds.physics.transfer_function import TFParams
+    from bayes_tfcrds.uncertainty import propagate
+
+    rng = np.random.default_rng(3)
+    h_star = TFParams(f_c_hz=2e6, a_r=0.2, f_r_hz=5e6, gamma_r=1.5)
+    draws = np.column_stack(
+        [
+            h_star.f_c_hz * (1 + 0.01 * rng.standard_normal(250)),
+            h_star.a_r + 0.01 * rng.standard_normal(250),
+            h_star.f_r_hz * (1 + 0.01 * rng.standard_normal(250)),
+            h_star.gamma_r * (1 + 0.01 * rng.standard_normal(250)),
+        ]
+    )
+    names = ("f_c_hz", "a_r", "f_r_hz", "gamma_r")
+    shared, other = np.arange(513) * 1e5, np.arange(257) * 2e5  # two rfft grids (Hz)
+
+    def kernel(f_hz, n_rows):
+        k = rng.standard_normal((n_rows, f_hz.size)) + 1j * rng.standard_normal((n_rows, f_hz.size))
+        return propagate.TauKernels(((np.arange(n_rows), f_hz, k),))
+
+    sets = [(kernel(shared, 5), 5), (kernel(shared, 3), 3), (kernel(other, 4), 4)]
+    alone = [lb.h_shifts(k, draws, h_star, n, names=names) for k, n in sets]
+    calls = []
+    real = propagate.transfer_function_of_draws
+    monkeypatch.setattr(
+        propagate, "transfer_function_of_draws", lambda *a: calls.append(a[0].size) or real(*a)
+    )
+    together = lb.h_shifts_many(sets, draws, h_star, names=names)
+    for a, b in zip(alone, together):
+        np.testing.assert_array_equal(a, b)
+    # 3 chunks of 100 draws, each through the shared grid once and the other grid once
+    assert sorted(calls) == [257] * 3 + [513] * 3
+    assert lb.h_shifts_many([], None, h_star) == []
