@@ -1,8 +1,8 @@
 """Does the budget's stated u(A) match the scatter of A over simulated campaigns? (60 replicas)
 
 The first check's small version in CI is the coverage study's test
-(``tests/studies/test_coverage_study.py``, 40 campaigns); the second's is
-``tests/uncertainty/test_uncertainty.py`` (20 replicas). Each replica simulates the letter's chain
+(``tests/studies/test_coverage_study.py``, 40 campaigns); the second runs here only (20 replicas
+took 2.5-3 min of one CI worker). Each replica simulates the letter's chain
 D4 on a small campaign (21 modes, 4096 samples, 25 averages) with new noise and runs the budget
 (Laplace posterior, t_cut 4 and 8 us), the path the two tests check:
 
@@ -12,7 +12,7 @@ D4 on a small campaign (21 modes, 4096 samples, 25 averages) with new noise and 
 * noise rows: with the same beat note in every replica, sd(A) between the ring-down-noise rows
   and the whole u_stat, each bound widened by the same band.
 
-PASS/FAIL per check. About 10 s per replica on one core; ``--workers 2`` halves the time.
+PASS/FAIL per check. About 7 s per replica on one core; ``--workers 2`` halves the time.
 
 Usage:  python benchmarks/budget_replicas.py [--replicas 60] [--workers 2]
 """
