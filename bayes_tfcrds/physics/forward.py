@@ -218,9 +218,10 @@ def filtered_response(
             stack.append(dx if h_k is None else dx * h_k)
         if dh_k is not None:
             stack.append((x[:, None, :] * dh_k[None, :, :]).reshape(-1, x.shape[1]))
-        # one FFT thread: the batches are small, and the budget, the studies and the tests run
-        # in parallel processes, where threads per process would oversubscribe the cores (the
-        # result is the same to the bit; benchmarks/budget_speed.py: 40.2 -> 38.2 s on 2 cores)
+        # one FFT thread: the batches are small (threads gained nothing in one process: two
+        # Laplace budgets took 15.6 s with one thread, 16.6 s with all), and the budget, the
+        # studies and the tests run in parallel processes, where threads per process would
+        # oversubscribe the cores. The result is the same to the bit.
         out = sfft.irfft(np.concatenate(stack, axis=0), n=grid.n_fft, axis=-1)
         nb = x.shape[0]
         g[sl, lo:] = out[:nb, cols]
