@@ -20,7 +20,8 @@ import os
 if os.environ.get("PYTEST_XDIST_WORKER"):
     # ``pytest -n 2`` runs two processes on two cores: one BLAS thread each (set before numpy
     # loads OpenBLAS), or their threads oversubscribe the cores. Results are the same to the bit;
-    # two budgets side by side took 18.8 s with OpenBLAS's threads and 16.2 s without.
+    # two budget processes side by side took 18.8 and 17.9 s with OpenBLAS's threads, 16.5 and
+    # 15.7 s with one each.
     for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
         os.environ.setdefault(_var, "1")
 

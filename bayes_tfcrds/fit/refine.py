@@ -711,22 +711,43 @@ def _gain(layout, tf, free, rest, tau, w, info, beta, prior_others):
     return -np.linalg.solve(w * a_rr + info, w * a_ro - p_beta), w * a
 
 
-def _draw_independent(layout: _Layout, grid, in_group, tau, amp, tf):
+@dataclass(frozen=True)
+class _GridPart:
     """What :func:`ringdown_log_likelihood` needs of one model grid that no H draw changes.
 
-    The rows on ``grid``, their records' positions, the grid's rfft frequencies (Hz), H* there,
-    the records' input spectra X (r, n_freq), the data columns, and each row's B exp(-t_k/tau).
+    ``rows`` on the grid and ``inv`` their records' positions among its records; H* at the grid's
+    rfft frequencies ``f_hz`` (Hz); the records' input spectra ``x`` (r, n_freq); the grid
+    columns of the data ``cols``; each row's B exp(-t_k/tau) ``scale`` (V, shape (1, rows, 1)).
     """
+
+    grid: object
+    rows: np.ndarray
+    inv: np.ndarray
+    f_hz: np.ndarray
+    h_star: np.ndarray
+    x: np.ndarray
+    cols: np.ndarray
+    scale: np.ndarray
+
+
+def _grid_part(layout: _Layout, grid, in_group, tau, amp, tf) -> _GridPart:
+    """The :class:`_GridPart` of ``grid`` for the rows ``in_group`` (computed once per grid)."""
     rows = np.nonzero(in_group)[0]
     ro = layout.rows_of
     recs, inv = np.unique(ro[rows], return_inverse=True)
     f_hz = np.arange(grid.n_fft // 2 + 1) / (grid.n_fft * grid.dt_s)
-    x = input_spectrum(tau[recs], grid)
-    cols_g = np.arange(grid.first_data, grid.n_data) + grid.data_offset
     kink = layout.kink_s[rows][None, :, None]
     factor = np.exp(-kink / tau[ro[rows]][None, :, None])
-    scale = amp[ro[rows]][None, :, None] * factor
-    return grid, rows, inv, f_hz, transfer_function(f_hz, tf), x, cols_g, scale
+    return _GridPart(
+        grid=grid,
+        rows=rows,
+        inv=inv,
+        f_hz=f_hz,
+        h_star=transfer_function(f_hz, tf),
+        x=input_spectrum(tau[recs], grid),
+        cols=np.arange(grid.first_data, grid.n_data) + grid.data_offset,
+        scale=amp[ro[rows]][None, :, None] * factor,
+    )
 
 
 def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -> np.ndarray:
@@ -753,19 +774,17 @@ def ringdown_log_likelihood(refined: RefinedTF, draws, names, chunk: int = 32) -
     grids = model_grids(float(t[0]), float(t[1] - t[0]), t.size, uniq, tf, layout.window)
     if layout.window == "extinction":
         group = np.zeros_like(group)
-    per_grid = [
-        _draw_independent(layout, grids[gi], group == gi, tau, amp, tf) for gi in np.unique(group)
-    ]
+    parts = [_grid_part(layout, grids[gi], group == gi, tau, amp, tf) for gi in np.unique(group)]
     out = np.zeros(draws.shape[0])
     for c0 in range(0, draws.shape[0], chunk):
         sl = slice(c0, c0 + chunk)
         dm = np.zeros((min(chunk, draws.shape[0] - c0), *wm.shape))
-        for grid, rows, inv, f_hz, h_star, x, cols_g, scale in per_grid:
-            dh = transfer_function_of_draws(f_hz, tf, names, draws[sl]) - h_star[None, :]
-            resp = sfft.irfft(dh[:, None, :] * x[None, :, :], n=grid.n_fft, axis=-1)
-            block = np.zeros((dm.shape[0], x.shape[0], t.size))
-            block[:, :, grid.first_data : grid.n_data] = resp[:, :, cols_g]
-            dm[:, rows] = scale * block[:, inv]
+        for p in parts:
+            dh = transfer_function_of_draws(p.f_hz, tf, names, draws[sl]) - p.h_star[None, :]
+            resp = sfft.irfft(dh[:, None, :] * p.x[None, :, :], n=p.grid.n_fft, axis=-1)
+            block = np.zeros((dm.shape[0], p.x.shape[0], t.size))
+            block[:, :, p.grid.first_data : p.grid.n_data] = resp[:, :, p.cols]
+            dm[:, p.rows] = p.scale * block[:, p.inv]
         dm *= wm[None] > 0
         ctw = _per_record(layout, np.einsum("nak,cnk,nk->nca", cols, dm, wm))  # (m, c, 3)
         coef = np.einsum("mab,mcb->mca", ctc_inv, ctw)
