@@ -418,9 +418,10 @@ def cmd_budget(args) -> int:
     from bayes_tfcrds.fit.h_calibration import AnalysisError
     from bayes_tfcrds.fit.line_analysis import LineFitError
     from bayes_tfcrds.fit.refine import tension_lines
-    from bayes_tfcrds.uncertainty.line_budget import run_budget
+    from bayes_tfcrds.uncertainty.line_budget import run_budget, side_pool
     from bayes_tfcrds.uncertainty.monte_carlo import edge_units
     from bayes_tfcrds.uncertainty.outputs import (
+        corner_job,
         failed_banner,
         posterior_line,
         posterior_record,
@@ -433,26 +434,32 @@ def cmd_budget(args) -> int:
     bundle = _load(args.file[0])
     config = _config(bundle, args.config)
     opts = _budget_options(args)
+    truth = load_truth(args.file[0])
     try:
-        try:
-            res = run_budget(
-                bundle,
-                config,
-                opts,
-                np.random.default_rng(args.seed),
-                outdir=args.output,
-                progress=not args.quiet,
-                workers=args.workers,
+        # one pool for the budget's side steps and the corner plots, each drawn once its run is
+        # sampled (the plots are the same; the pool would otherwise idle after the CMDS run)
+        with side_pool(args.workers) as pool:
+            on_run, started = (
+                corner_job(pool, args.output, truth, config.name) if pool else (None, None)
             )
-        except (LineFitError, AnalysisError, ValueError) as exc:
-            return _fail(exc, 1)
-        write_outputs(
-            res,
-            args.output,
-            seed=args.seed,
-            truth=load_truth(args.file[0]),
-            workers=args.workers,
-        )
+            try:
+                res = run_budget(
+                    bundle,
+                    config,
+                    opts,
+                    np.random.default_rng(args.seed),
+                    outdir=args.output,
+                    progress=not args.quiet,
+                    workers=args.workers,
+                    pool=pool,
+                    on_run=on_run,
+                )
+            except (LineFitError, AnalysisError, ValueError) as exc:
+                return _fail(exc, 1)
+            write_outputs(
+                res, args.output, seed=args.seed, truth=truth, workers=args.workers,
+                started=started,
+            )  # fmt: skip
     except KeyboardInterrupt:
         print(file=sys.stderr)
         _say(

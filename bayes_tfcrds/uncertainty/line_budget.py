@@ -1395,6 +1395,8 @@ def run_budget(
     outdir: str | Path | None = None,
     progress: bool = False,
     workers: int = 1,
+    pool=None,
+    on_run=None,
 ) -> BudgetResult:
     """Posteriors, propagation and the GUM budget for one configuration (see module doc).
 
@@ -1421,6 +1423,12 @@ def run_budget(
     workers : int
         Processes to use: with 2 or more, the CMDS reference is sampled in a second process
         while H and the line are (the same result bit for bit; MCMC only).
+    pool : concurrent.futures.Executor, optional
+        A process pool of the caller's (:func:`side_pool`) to use instead of making one from
+        ``workers``: the CLI shares it with the corner plots.
+    on_run : callable, optional
+        ``on_run(key, run)`` with each posterior run (``h``, ``line``, ``cmds``) as soon as it is
+        sampled, in this process: the CLI starts its corner plot in the pool meanwhile.
 
     Returns
     -------
@@ -1434,24 +1442,26 @@ def run_budget(
         raise ValueError(f"workers must be >= 1, got {workers}")
     inp = _inputs(bundle, config, options, rng, outdir, progress)
     if outdir is None:
-        return _budget_with(inp, workers)
+        return _budget_with(inp, workers, pool, on_run)
     # one run at a time resumes the chains of a folder (a second one is refused, FolderBusyError)
     with folder_lock(outdir):
         claim_chains(outdir, run_fingerprint(bundle, config, options))
-        return _budget_with(inp, workers)
+        return _budget_with(inp, workers, pool, on_run)
 
 
-def _budget_with(inp: _Inputs, workers: int) -> BudgetResult:
-    """:func:`_budget`, with a pool of workers - 1 processes for the side steps when workers >= 2.
+@contextlib.contextmanager
+def side_pool(workers: int):
+    """A pool of ``workers`` - 1 processes for the side steps (None when workers < 2).
 
     If the main process fails or is interrupted, the pool's processes get SIGINT: a sampler there
     commits its chains and stops at its next chunk, instead of the error waiting for it to finish.
     """
     if workers < 2:
-        return _budget(inp)
+        yield None
+        return
     pool = ProcessPoolExecutor(max_workers=workers - 1)
     try:
-        return _budget(inp, pool)
+        yield pool
     except BaseException:
         for proc in list(getattr(pool, "_processes", {}).values()):
             with contextlib.suppress(OSError):
@@ -1461,12 +1471,22 @@ def _budget_with(inp: _Inputs, workers: int) -> BudgetResult:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
-def _budget(inp: _Inputs, pool=None) -> BudgetResult:
+def _budget_with(inp: _Inputs, workers: int, pool=None, on_run=None) -> BudgetResult:
+    """:func:`_budget` in the caller's ``pool``, or in a :func:`side_pool` of ``workers``."""
+    if pool is not None:
+        return _budget(inp, pool, on_run)
+    with side_pool(workers) as own:
+        return _budget(inp, own, on_run)
+
+
+def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
     """Steps 1-10 of :func:`run_budget` on checked inputs (the chain folder claimed).
 
     With a ``pool`` (a process pool), the CMDS reference (step 6) is sampled there meanwhile.
+    ``on_run(key, run)`` hears of each posterior run when it is sampled.
     """
     options, config = inp.options, inp.config
+    announce = on_run if on_run is not None else (lambda key, run: None)
     ref_job = _start_reference(inp, pool)
     tf = options.method == "tf-crds"
     clock = StageClock(9 if tf else 6, f"budget {config.name} ({options.posterior})")
@@ -1482,6 +1502,7 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
         names = h_parts["names"]
         if h_run is not None:
             runs["h"] = h_run
+            announce("h", h_run)
         # the other descriptions of Eq. 2 that give this H(f): which parameters are identified
         ident = identify_h(
             h_star,
@@ -1502,6 +1523,8 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
     tau_job = side.submit(_tau_table, inp, dt, h_star, h_draws, names)  # 11.
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     clock.done("line posterior")
+    if "line" in runs:
+        announce("line", runs["line"])
     a_noise = line_flat[:, dt.lsq.names.index("line_area")]
     u_dir = float(np.std(a_noise))
     sens_a, h_rows, d_h = {}, ([], {}), None
@@ -1527,6 +1550,8 @@ def _budget(inp: _Inputs, pool=None) -> BudgetResult:
         a_total = a_noise.copy()
     a_ref, dof_ref = _collect_reference(inp, ref_job, runs)  # 6. A_ref
     clock.done("A_ref from CMDS")
+    if "cmds" in runs:
+        announce("cmds", runs["cmds"])
     form = None
     if tf:  # 6b. the form of the H model
         form_row, form = form_job.result()

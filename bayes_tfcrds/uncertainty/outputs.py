@@ -218,6 +218,7 @@ def write_outputs(
     seed: int | None = None,
     truth: dict | None = None,
     workers: int = 1,
+    started: dict | None = None,
 ) -> list:
     """budget.json, budget tables (Markdown, CSV), posteriors (arviz netCDF) and corner plots.
 
@@ -225,7 +226,9 @@ def write_outputs(
     ``truth`` (the bundle's /truth, from bayes_tfcrds.bundle.reader.load_truth) adds truth lines
     to the corner plots of a simulated bundle. With ``workers`` > 1 the corner plots (seconds
     each) are drawn in that many processes while this one writes the rest; the files are the
-    same.
+    same. ``started`` maps a run's key to the future of its corner plot already submitted to a
+    pool (:func:`corner_job`, while the budget ran); one still waiting there is taken back and
+    drawn here once the rest is written.
     """
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
@@ -280,9 +283,14 @@ def write_outputs(
     atomic_write_text(out / "tau_posterior.csv", "\n".join(lines) + "\n")
     written += [out / "budget.md", out / "budget.csv", out / "tau_posterior.csv"]
     config = result.summary.get("configuration")
+    started = started or {}
     corners = [
-        (key, run, truth, config, out / f"corner_{key}.png") for key, run in result.runs.items()
+        (key, run, truth, config, out / f"corner_{key}.png")
+        for key, run in result.runs.items()
+        if key not in started
     ]
+    if started:
+        return written + _finish_started(result, out, started, corners)
     pool = None
     if workers > 1 and len(corners) > 1:
         from concurrent.futures import ProcessPoolExecutor
@@ -298,6 +306,42 @@ def write_outputs(
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+    return written
+
+
+def corner_job(pool, out, truth, config):
+    """Corner plots drawn in ``pool`` while the budget runs: ``on_run`` for ``run_budget``.
+
+    ``on_run(key, run)`` (for :func:`~bayes_tfcrds.uncertainty.line_budget.run_budget`) submits
+    each posterior's corner plot to ``pool`` as soon as the run is sampled.
+
+    Returns (on_run, started): ``started`` fills with {key: (future, write_corner arguments)},
+    for :func:`write_outputs`.
+    """
+    started = {}
+
+    def on_run(key, run):
+        args = (key, run, truth, config, Path(out) / f"corner_{key}.png")
+        started[key] = (pool.submit(write_corner, *args), args)
+
+    return on_run, started
+
+
+def _finish_started(result, out: Path, started: dict, corners: list) -> list:
+    """The netCDF files, then every corner plot: those the pool has not begun are drawn here.
+
+    ``corners`` are the write_corner arguments of the runs nobody started; a started plot still
+    waiting in the pool is cancelled there and drawn here, the latest submitted first.
+    """
+    written = []
+    for key, run in result.runs.items():
+        path = out / f"posterior_{key}.nc"
+        run.save_netcdf(path)
+        written.append(path)
+    todo = list(corners)
+    todo += [args for fut, args in reversed(list(started.values())) if fut.cancel()]
+    written += [write_corner(*c) for c in todo]
+    written += [fut.result() for fut, _ in started.values() if not fut.cancelled()]
     return written
 
 

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
-from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget
-from bayes_tfcrds.uncertainty.outputs import write_outputs
+from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, run_budget, side_pool
+from bayes_tfcrds.uncertainty.outputs import corner_job, write_outputs
 
 TINY = replace(Campaign(), n_points=21, n_samples=4096, n_avg=25)
 # short chains: the gates fail, which does not matter for an identity of two runs
@@ -25,12 +25,23 @@ def bundle():
     return b
 
 
-def _budget_json(bundle, workers, out):
+def _budget_json(bundle, workers, out, shared=False):
     # with an output folder: the chains go to chains_*.h5 (the CMDS one written by the child)
-    res = run_budget(
-        bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), outdir=out, workers=workers
-    )
-    write_outputs(res, out, seed=1, workers=workers)
+    if shared:  # the CLI's way: one pool for the side steps and the corner plots
+        with side_pool(workers) as pool:
+            on_run, started = corner_job(pool, out, None, "D2")
+            res = run_budget(
+                bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), outdir=out,
+                pool=pool, on_run=on_run,
+            )  # fmt: skip
+            write_outputs(res, out, seed=1, workers=workers, started=started)
+            assert set(started) == {"h", "line", "cmds"}  # every plot was started in the pool
+    else:
+        res = run_budget(
+            bundle, bundle.configs["D2"], SHORT, np.random.default_rng(1), outdir=out,
+            workers=workers,
+        )  # fmt: skip
+        write_outputs(res, out, seed=1, workers=workers)
     data = json.loads((out / "budget.json").read_text())
     data.pop("provenance", None)
     return res, data
@@ -46,10 +57,14 @@ def test_two_workers_give_the_same_budget_bit_for_bit(bundle, tmp_path):
     assert set(two.runs) == {"h", "line", "cmds"}
     assert one.tau_table == two.tau_table
     assert (tmp_path / "two" / "chains_cmds.h5").stat().st_size > 0
-    # the corner plots drawn in worker processes are the very files drawn in this one
+    # the corner plots drawn in worker processes are the very files drawn in this one, and so
+    # are those started in the shared pool while the budget ran (some taken back and drawn here)
+    _, d3 = _budget_json(bundle, 2, tmp_path / "three", shared=True)
+    assert d3 == d1
     for key in ("h", "line", "cmds"):
         png = f"corner_{key}.png"
         assert (tmp_path / "one" / png).read_bytes() == (tmp_path / "two" / png).read_bytes()
+        assert (tmp_path / "one" / png).read_bytes() == (tmp_path / "three" / png).read_bytes()
 
 
 def test_the_corner_plot_thins_whole_steps():

@@ -101,3 +101,25 @@ def test_cmds_type_b_is_the_letters_spread_as_a_rectangle():
     assert CMDS_SPREAD_REL == 6e-4
     assert c.u == pytest.approx(4.0e5 * 3e-4 / np.sqrt(3), rel=1e-12)
     assert c.sensitivity == pytest.approx(-0.999 / 4.0e5, rel=1e-12)
+
+
+@pytest.mark.parametrize(("beta_true", "seed"), [(0.0, 21), (-2e-3, 22), (8e-4, 23)])
+def test_beta_newton_agrees_with_the_bounded_search(beta_true, seed):
+    """The row's Newton steps reach the minimum discovery's bounded search finds: beta within
+    0.01 u(beta) (the search's own tolerance, 1e-3 of a 5 % window about beta, is of that order;
+    Newton's error after a step of 0.5 u is about 2e-3 u) and the same u(beta) within 2 % (two
+    second differences of one chi2, steps u and 1e-3 beta)."""
+    from bayes_tfcrds.fit.extensions import TransientSpec, fit_transient_rows, optimise_shared
+    from bayes_tfcrds.uncertainty.instrument import _beta_by_newton
+
+    effects = {"static_nonlinearity": {"beta": beta_true}} if beta_true else {}
+    _, cfg = _campaign(effects, seed)
+    rd = cfg.ringdowns
+    rows = np.arange(rd.n_points)
+    t_rows = np.full(rows.size, T_CUT)
+    base = TransientSpec("crds")
+    tau0 = fit_transient_rows(rd, t_rows, rows, base).tau_s
+    beta, u_beta = _beta_by_newton(rd, t_rows, rows, base, tau0)
+    params, _, cov = optimise_shared("static_nonlinearity", rd, t_rows, rows, base, tau0)
+    assert abs(beta - params["beta"]) < 0.01 * u_beta
+    assert u_beta == pytest.approx(np.sqrt(cov[0, 0]), rel=0.02)
