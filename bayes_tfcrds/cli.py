@@ -422,6 +422,7 @@ def cmd_budget(args) -> int:
     from bayes_tfcrds.uncertainty.monte_carlo import edge_units
     from bayes_tfcrds.uncertainty.outputs import (
         corner_job,
+        discard_started,
         failed_banner,
         posterior_line,
         posterior_record,
@@ -435,6 +436,7 @@ def cmd_budget(args) -> int:
     config = _config(bundle, args.config)
     opts = _budget_options(args)
     truth = load_truth(args.file[0])
+    started = None
     try:
         # one pool for the budget's side steps and the corner plots, each drawn once its run is
         # sampled (the plots are the same; the pool would otherwise idle after the CMDS run)
@@ -455,12 +457,18 @@ def cmd_budget(args) -> int:
                     on_run=on_run,
                 )
             except (LineFitError, AnalysisError, ValueError) as exc:
-                return _fail(exc, 1)
-            write_outputs(
-                res, args.output, seed=args.seed, truth=truth, workers=args.workers,
-                started=started,
-            )  # fmt: skip
+                failure = exc  # the pool was interrupted; it is shut down on leaving the block
+            else:
+                failure = None
+                write_outputs(
+                    res, args.output, seed=args.seed, truth=truth, workers=args.workers,
+                    started=started,
+                )  # fmt: skip
+        if failure is not None:
+            discard_started(started)
+            return _fail(failure, 1)
     except KeyboardInterrupt:
+        discard_started(started)
         print(file=sys.stderr)
         _say(
             "interrupted: the chains sampled so far are kept in "

@@ -151,8 +151,8 @@ def _beta_by_newton(ringdowns, t_rows, rows, base, tau_start):
     beta. The mapping acts on the data almost linearly, so chi2 is nearly quadratic in beta: a
     few steps on binned records and one or two on the full ones (three refits each) reach the
     minimum, where a bounded scalar search needed about 19 refits. u(beta) = sqrt(2 / chi2'')
-    on the full records. Returns None when chi2 is not convex at a step or the minimum leaves
-    the family's bounds (the caller then searches).
+    on the full records. Returns None when chi2 is not convex at a step, the minimum leaves the
+    family's bounds, or BETA_MAX_ITER steps do not converge (the caller then searches).
     """
     ((_, _, lo, hi),) = SHARED["static_nonlinearity"]
     warm = np.asarray(tau_start, float)

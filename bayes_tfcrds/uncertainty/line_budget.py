@@ -1463,20 +1463,32 @@ def side_pool(workers: int):
     try:
         yield pool
     except BaseException:
-        for proc in list(getattr(pool, "_processes", {}).values()):
-            with contextlib.suppress(OSError):
-                os.kill(proc.pid, signal.SIGINT)
+        interrupt_pool(pool)
         raise
     finally:
         pool.shutdown(wait=True, cancel_futures=True)
 
 
+def interrupt_pool(pool) -> None:
+    """SIGINT to every process of ``pool``: a sampler there commits its chains and stops."""
+    for proc in list(getattr(pool, "_processes", {}).values()):
+        with contextlib.suppress(OSError):
+            os.kill(proc.pid, signal.SIGINT)
+
+
 def _budget_with(inp: _Inputs, workers: int, pool=None, on_run=None) -> BudgetResult:
-    """:func:`_budget` in the caller's ``pool``, or in a :func:`side_pool` of ``workers``."""
-    if pool is not None:
+    """:func:`_budget` in the caller's ``pool``, or in a :func:`side_pool` of ``workers``.
+
+    A failure interrupts the caller's pool too, here, while the chain folder is still locked.
+    """
+    if pool is None:
+        with side_pool(workers) as own:
+            return _budget(inp, own, on_run)
+    try:
         return _budget(inp, pool, on_run)
-    with side_pool(workers) as own:
-        return _budget(inp, own, on_run)
+    except BaseException:
+        interrupt_pool(pool)
+        raise
 
 
 def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
@@ -1502,7 +1514,6 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
         names = h_parts["names"]
         if h_run is not None:
             runs["h"] = h_run
-            announce("h", h_run)
         # the other descriptions of Eq. 2 that give this H(f): which parameters are identified
         ident = identify_h(
             h_star,
@@ -1521,6 +1532,8 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
     )  # 6c.
     form_job = side.submit(_h_model_form, inp, choice, "n_r" in names) if tf else None  # 6b.
     tau_job = side.submit(_tau_table, inp, dt, h_star, h_draws, names)  # 11.
+    if "h" in runs:  # after the side steps, which this process will wait for
+        announce("h", runs["h"])
     line_flat = _line_posterior(inp, dt, runs)  # 3. line | H*
     clock.done("line posterior")
     if "line" in runs:

@@ -8,10 +8,12 @@ imports this one, see :func:`component_from_result`) is described in data/FORMAT
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
 import json
 import math
+import os
 from dataclasses import replace
 from pathlib import Path
 
@@ -226,9 +228,9 @@ def write_outputs(
     ``truth`` (the bundle's /truth, from bayes_tfcrds.bundle.reader.load_truth) adds truth lines
     to the corner plots of a simulated bundle. With ``workers`` > 1 the corner plots (seconds
     each) are drawn in that many processes while this one writes the rest; the files are the
-    same. ``started`` maps a run's key to the future of its corner plot already submitted to a
-    pool (:func:`corner_job`, while the budget ran); one still waiting there is taken back and
-    drawn here once the rest is written.
+    same. ``started`` (from :func:`corner_job`) holds the corner plots already submitted to a
+    pool while the budget ran: one still waiting there is taken back and drawn here once the
+    rest is written.
     """
     out = Path(outdir)
     out.mkdir(parents=True, exist_ok=True)
@@ -313,18 +315,33 @@ def corner_job(pool, out, truth, config):
     """Corner plots drawn in ``pool`` while the budget runs: ``on_run`` for ``run_budget``.
 
     ``on_run(key, run)`` (for :func:`~bayes_tfcrds.uncertainty.line_budget.run_budget`) submits
-    each posterior's corner plot to ``pool`` as soon as the run is sampled.
+    each posterior's corner plot to ``pool`` as soon as the run is sampled. The pool draws it
+    under a pending name (``corner_KEY.pending.png``); :func:`write_outputs` gives it its name,
+    so a run that fails later leaves no plot beside an earlier run's budget
+    (:func:`discard_started`).
 
-    Returns (on_run, started): ``started`` fills with {key: (future, write_corner arguments)},
-    for :func:`write_outputs`.
+    Returns (on_run, started): ``started`` fills with {key: (future, write_corner arguments)}.
     """
     started = {}
 
     def on_run(key, run):
         args = (key, run, truth, config, Path(out) / f"corner_{key}.png")
-        started[key] = (pool.submit(write_corner, *args), args)
+        pending = _pending(args[4])
+        started[key] = (pool.submit(write_corner, *args[:4], pending), args)
 
     return on_run, started
+
+
+def _pending(path: Path) -> Path:
+    return path.with_name(path.stem + ".pending.png")
+
+
+def discard_started(started: dict | None) -> None:
+    """Cancel the corner plots a failed run started and remove those drawn (after the pool)."""
+    for fut, args in (started or {}).values():
+        fut.cancel()
+        with contextlib.suppress(FileNotFoundError):
+            _pending(args[4]).unlink()
 
 
 def _finish_started(result, out: Path, started: dict, corners: list) -> list:
@@ -341,7 +358,10 @@ def _finish_started(result, out: Path, started: dict, corners: list) -> list:
     todo = list(corners)
     todo += [args for fut, args in reversed(list(started.values())) if fut.cancel()]
     written += [write_corner(*c) for c in todo]
-    written += [fut.result() for fut, _ in started.values() if not fut.cancelled()]
+    for fut, args in started.values():
+        if not fut.cancelled():
+            os.replace(fut.result(), args[4])
+            written.append(args[4])
     return written
 
 

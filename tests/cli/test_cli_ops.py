@@ -312,3 +312,20 @@ def test_packaged_laplace_coverage_equals_the_committed_coverage_report():
 
     report = Path(__file__).resolve().parents[2] / "reports" / "coverage_laplace" / "numbers.json"
     assert laplace_coverage() == laplace_coverage(report)
+
+
+def test_a_budget_that_fails_with_two_workers_leaves_no_corner_plot(bundles, tmp_path, monkeypatch):
+    """--workers 2 draws each corner plot in the pool as soon as its run is sampled. A run that
+    then fails (here: the line fit, after H and with the CMDS reference under way) exits 1 with
+    no plot in the folder, neither named nor pending: nothing beside an earlier run's budget."""
+    from bayes_tfcrds.fit.line_analysis import LineFitError
+    from bayes_tfcrds.uncertainty import line_budget
+
+    def fail(*args, **kwargs):
+        raise LineFitError("the line fit failed (a test)")
+
+    monkeypatch.setattr(line_budget, "_line_posterior", fail)
+    out = tmp_path / "failed"
+    argv = ["budget", str(bundles[0]), "--steps", "60", "--max-steps", "60", "--seed", "2"]
+    assert main([*argv, "--workers", "2", "--quiet", "-o", str(out)]) == 1
+    assert not list(out.glob("corner_*")) and not (out / "budget.json").exists()

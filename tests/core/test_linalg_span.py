@@ -41,3 +41,16 @@ def test_the_absolute_floor_stops_the_basis_at_the_noise():
     floor = 1e-9 * np.sqrt(400) * 3  # three times the noise norm of a row
     basis, _, ok = extend_span(rows, np.zeros((0, 400)), 0.0, floor, 50)
     assert basis.shape[0] == 4 and ok.all()
+
+
+def test_non_finite_rows_are_not_spanned_and_leave_the_basis_clean():
+    """A draw whose H overflows (a row of inf or nan) goes to the caller's exact path; the basis
+    built from the finite rows, before or after it, holds no non-finite number."""
+    rng = np.random.default_rng(4)
+    rows = _rows(rng, 20, 3)
+    rows[5] = np.inf
+    rows[9, 7] = np.nan
+    basis, _, ok = extend_span(rows[:12], np.zeros((0, 400)), 1e-12, 0.0, 50)
+    basis, _, ok2 = extend_span(rows[12:], basis, 1e-12, 0.0, 50)
+    assert np.all(np.isfinite(basis))
+    assert not ok[5] and not ok[9] and ok2.all()

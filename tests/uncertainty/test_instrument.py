@@ -123,3 +123,14 @@ def test_beta_newton_agrees_with_the_bounded_search(beta_true, seed):
     params, _, cov = optimise_shared("static_nonlinearity", rd, t_rows, rows, base, tau0)
     assert abs(beta - params["beta"]) < 0.01 * u_beta
     assert u_beta == pytest.approx(np.sqrt(cov[0, 0]), rel=0.02)
+
+
+def test_nonlinearity_row_falls_back_to_the_bounded_search(monkeypatch):
+    """Where Newton gives up (chi2 not convex at a step), the row comes from discovery's bounded
+    search and still recovers the simulated beta within 4 u(beta)."""
+    import bayes_tfcrds.uncertainty.instrument as instrument
+
+    monkeypatch.setattr(instrument, "_beta_by_newton", lambda *a: None)
+    row = _row({"static_nonlinearity": {"beta": -2e-3}}, seed=11)
+    assert abs(row.detail["beta"] + 2e-3) < 4 * row.detail["u_beta"]
+    assert row.finding is not None
