@@ -193,7 +193,11 @@ def file_sha256(path) -> str:
 
 
 def git_commit(path=None) -> str:
-    """The checkout's commit (with ``+dirty`` when it has uncommitted changes), or ``unknown``."""
+    """The checkout's commit (with ``+dirty`` when it has uncommitted changes), or ``unknown``.
+
+    Changes under ``reports/`` do not count: regenerating several reports in one clone writes
+    them there, and the code that made the later ones is still the commit's.
+    """
     cwd = Path(path or Path(__file__).resolve().parent)
     try:
         rev = subprocess.run(
@@ -202,7 +206,8 @@ def git_commit(path=None) -> str:
         if rev.returncode != 0:
             return "unknown"
         dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no"],
+            ["git", "status", "--porcelain", "--untracked-files=no"]
+            + ["--", ":(top)", ":(top,exclude)reports"],
             cwd=cwd,
             capture_output=True,
             text=True,
