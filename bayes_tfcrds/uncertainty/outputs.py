@@ -300,14 +300,21 @@ def write_outputs(
         pool = ProcessPoolExecutor(max_workers=min(int(workers), len(corners)))
     try:
         drawn = [pool.submit(write_corner, *c) for c in corners] if pool else []
-        for key, run in result.runs.items():
-            path = out / f"posterior_{key}.nc"
-            run.save_netcdf(path)
-            written.append(path)
+        written += write_posteriors(result, out)
         written += [f.result() for f in drawn] if pool else [write_corner(*c) for c in corners]
     finally:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
+    return written
+
+
+def write_posteriors(result, out: Path) -> list:
+    """Each posterior run as arviz netCDF, ``posterior_KEY.nc`` in ``out``; the paths."""
+    written = []
+    for key, run in result.runs.items():
+        path = out / f"posterior_{key}.nc"
+        run.save_netcdf(path)
+        written.append(path)
     return written
 
 
@@ -350,11 +357,7 @@ def _finish_started(result, out: Path, started: dict, corners: list) -> list:
     ``corners`` are the write_corner arguments of the runs nobody started; a started plot still
     waiting in the pool is cancelled there and drawn here, the latest submitted first.
     """
-    written = []
-    for key, run in result.runs.items():
-        path = out / f"posterior_{key}.nc"
-        run.save_netcdf(path)
-        written.append(path)
+    written = write_posteriors(result, out)
     todo = list(corners)
     todo += [args for fut, args in reversed(list(started.values())) if fut.cancel()]
     written += [write_corner(*c) for c in todo]
