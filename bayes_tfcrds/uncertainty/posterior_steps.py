@@ -47,6 +47,11 @@ from bayes_tfcrds.physics.transfer_function import PARAM_NAMES, transfer_functio
 from bayes_tfcrds.uncertainty.propagate import model_of
 
 MODE_JUMP_SHARE = 0.15  # share of steps that propose a jump between the known modes
+# commits of the chains to their HDF5 file per run length (n_steps): a killed budget resumes
+# losing at most a tenth of a run (about a second of sampling at the default 2500 steps). Each
+# commit opens the file once per ensemble (about 8 ms): commits every 100 steps cost 2.4 s of a
+# letter budget's CPU. The chains do not depend on where commits fall.
+COMMITS_PER_RUN = 10
 
 
 def sampler_moves(modes: MixtureProposal | None = None, jump_share: float = MODE_JUMP_SHARE):
@@ -108,6 +113,7 @@ def _sample(
         max_steps=options.max_steps,
         vectorize=True,
         backend_path=backend,
+        chunk_steps=max(1, options.n_steps // COMMITS_PER_RUN),
         progress=progress,
         label=label,
         moves=sampler_moves(modes, jump_share),

@@ -31,7 +31,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
 from test_sampling import assert_same, reference_run, short_run  # noqa: E402
 
-STEPS = 200  # per ensemble: one chunk commit at 100 steps, the last at 200 (chunks of 100)
+STEPS = 200  # per ensemble: a commit every 20 steps (a tenth of the run), the last at 200
 SEED = 5
 OUTPUTS = ("budget.json", "budget.md", "budget.csv", "tau_posterior.csv")
 RUNS = ("h", "line", "cmds")
@@ -295,8 +295,8 @@ class _Watched:
 
 
 def _sampling_line_past_first_commit(text):
-    """True once the line posterior's ensembles (which step together) are past step 120: its first
-    chunk (100 steps) is then committed, and the run has 80 steps to go."""
+    """True once the line posterior's ensembles (which step together) are past step 120: its
+    commits up to step 120 (every 20 steps) are then made, and the run has 80 steps to go."""
     # stderr is a pipe here: progress comes as plain lines ("...ensemble 0: 120/200 (60 %), ..."),
     # a line every 10 % of the steps (bayes_tfcrds.output.progress)
     steps = re.findall(r"line \| CRDS ensemble 0: (\d+)/", text)
