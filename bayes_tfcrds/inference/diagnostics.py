@@ -12,9 +12,11 @@ Diagnostics (per parameter and per derived quantity, :func:`chain_diagnostics`)
     one chain per ensemble; its draws are the first half of the kept steps listed walker by
     walker (all those steps of walker 0, then of walker 1, ...), then the middle step of an odd
     length, then the second half the same way.
-    The R-hat and ESS below are arviz 0.2x's, operation for operation, but computed here on
-    ranks shared between them and tau_int (:func:`_rhat_and_ess`): arviz ranks the same draws
-    four times. Tests keep them equal to ``arviz.rhat``/``arviz.ess`` to the bit.
+    R-hat and the ESS are arviz 0.2x's, operation for operation, computed here
+    (:func:`_rhat_and_ess`) so that tau_int, the bulk R-hat and the bulk ESS share one ranking
+    of the draws (arviz's functions rank them three times, tau_int a fourth). Tests keep them
+    equal to ``arviz.rhat``/``arviz.ess`` to the bit. Where arviz computes otherwise (its numba
+    variances when numba is installed, arviz >= 1) arviz's own functions are called.
 
     * ``rhat``: rank-normalised split R-hat (Vehtari et al. 2021, ``az.rhat(method="rank")``).
       R-hat only sees which draws fall in which half of each chain, and the halves are the first
@@ -81,6 +83,7 @@ Determinism and resume
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -224,10 +227,33 @@ def _rank_normal(x):
 
 # ------------------------------------------------------------ arviz's R-hat and ESS, shared work
 # chain_diagnostics needs R-hat, bulk and tail ESS and tau_int of one quantity. Through arviz's
-# public functions the same draws are ranked three times, and once more for tau_int. The
-# functions below are arviz 0.2x's (``arviz.stats.diagnostics._rhat_rank``, ``_ess_bulk``,
-# ``_ess_tail``) operation for operation, on ranks computed once; tests hold them equal to
-# ``arviz.rhat``/``arviz.ess`` to the bit on chains with ties, odd lengths and the runner's layout.
+# public functions the same draws are ranked three times (bulk R-hat, folded R-hat, bulk ESS),
+# and once more for tau_int. The functions below are arviz 0.2x's (``arviz.stats.diagnostics.
+# _rhat_rank``, ``_ess_bulk``, ``_ess_tail``) operation for operation, with the bulk ranks shared
+# by tau_int, R-hat and ESS; tests hold them equal to ``arviz.rhat``/``arviz.ess`` to the bit on
+# chains with ties, odd lengths and the runner's layout.
+@functools.cache
+def _arviz_major_installed() -> int:
+    from importlib.metadata import version
+
+    return int(version("arviz").split(".")[0])
+
+
+def _arviz_computes_as_here() -> bool:
+    """Whether arviz's R-hat/ESS use the numpy arithmetic copied below (bit-equal results).
+
+    Not with arviz >= 1 (another implementation) nor with arviz's numba variances, which it
+    switches on by itself when numba is importable (``arviz.utils.Numba.numba_flag``).
+    """
+    import sys
+    from importlib.util import find_spec
+
+    if _arviz_major_installed() >= 1:
+        return False
+    utils = sys.modules.get("arviz.utils")  # imported: its flag; not yet: what it will start with
+    return not (utils.Numba.numba_flag if utils is not None else find_spec("numba") is not None)
+
+
 def _split(draws) -> np.ndarray:
     """arviz's split chains: the first and last ``n // 2`` draws of each chain as two chains."""
     half = draws.shape[1] // 2
@@ -235,7 +261,7 @@ def _split(draws) -> np.ndarray:
 
 
 def _split_rhat(z) -> float:
-    """R-hat of already split (and normalised) chains ``z`` (arviz's ``_rhat``)."""
+    """R-hat of already split (and normalised) chains ``z`` (arviz's ``_rhat`` without numba)."""
     n = z.shape[1]
     between = n * np.var(np.mean(z, axis=1), ddof=1)
     within = np.mean(np.var(z, axis=1, ddof=1))
@@ -288,6 +314,7 @@ def _geyer_ess(chains) -> float:
 def _quantile_type7(ordered, p: float) -> float:
     """R's type-7 quantile of sorted values, as ``scipy.stats.mstats.mquantiles(a, p, 1, 1)``."""
     n = ordered.size
+    # mquantiles' m = alphap + p (1 - alphap - betap) with alphap = betap = 1, in its own order
     aleph = n * p + (1.0 + p * (1.0 - 1.0 - 1.0))
     k = int(np.floor(np.clip(aleph, 1, n - 1)))
     gamma = np.clip(aleph - k, 0, 1)
@@ -342,9 +369,9 @@ def chain_diagnostics(x) -> dict:
     z = _rank_normal(x)
     tau = [integrated_time(z[e]) for e in range(n_ens)]
     tau_max = float(max(tau))
-    if n_ens >= 2 and n * x.shape[2] >= 4:
+    if n_ens >= 2 and n * x.shape[2] >= 4 and _arviz_computes_as_here():
         rhat, ess_bulk, ess_tail = _rhat_and_ess(x, z)
-    else:  # arviz's answer for one chain or too few draws (NaN and a warning)
+    else:  # arviz's own: fewer than 4 draws (NaN and a warning), one chain (refused), numba
         draws = to_draws(x)
         rhat, ess_bulk, ess_tail = rhat_rank(draws), ess(draws, "bulk"), ess(draws, "tail")
     return dict(

@@ -132,7 +132,7 @@ def estimate_text(values) -> str:
 
 
 #: draws histogrammed in a corner plot's panels (every walker at every n-th step, for speed)
-CORNER_POINTS = 20_000
+CORNER_DRAWS = 20_000
 
 
 def thin_steps(flat, shape, most: int):
@@ -160,10 +160,10 @@ def corner_figure(run_key: str, run, truth=None, config=None):
     k = data.shape[1]
     # corner lays the panels out itself: no constrained layout on its figure
     fig = plt.figure(figsize=(max(1.8 * k, 4.0),) * 2, layout="none")
-    # the panels histogram at most CORNER_POINTS draws: every walker at every n-th step (whole
+    # the panels histogram at most CORNER_DRAWS draws: every walker at every n-th step (whole
     # steps, so no walker is left out; deterministic). Contours and histograms are as smooth; the
     # titles and quantile lines use every draw
-    shown = thin_steps(data, run.samples.shape[:3], CORNER_POINTS)
+    shown = thin_steps(data, run.samples.shape[:3], CORNER_DRAWS)
     corner.corner(
         shown,
         fig=fig,
@@ -176,10 +176,11 @@ def corner_figure(run_key: str, run, truth=None, config=None):
         labelpad=0.1,
         max_n_ticks=4,
         use_math_text=False,
-        # the 2-d panels show the density (grey) and its contours; the tails stay visible as faint
-        # density. Individual draws beyond the outer contour are not drawn: their markers and the
-        # white fill that hides the inner ones cost half of the PNG's drawing (1.3 s of 2.6 s per
-        # plot, 9 parameters) and tripled its size
+        # the 2-d panels show the density (grey, fading to white in empty bins) and its contours;
+        # individual draws beyond the outer contour are not drawn, so a sparse tail or a minor
+        # mode of ~1 % of the draws is faint there (the 1-d histograms on the diagonal show it).
+        # The markers and the white fill that hid the inner ones were half of the PNG's drawing
+        # (1.3 s of 2.6 s per plot, 9 parameters) and tripled its size
         plot_datapoints=False,
         no_fill_contours=True,
     )

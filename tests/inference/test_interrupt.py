@@ -295,8 +295,8 @@ class _Watched:
 
 
 def _sampling_line_past_first_commit(text):
-    """True once the line posterior's ensembles (which step together) are past step 120: its
-    commits up to step 120 (every 20 steps) are then made, and the run has 80 steps to go."""
+    """True once the line posterior's ensembles (which step together) are at step 120: the
+    commits up to step 100 (every 20 steps) are made, and the run has 80 steps to go."""
     # stderr is a pipe here: progress comes as plain lines ("...ensemble 0: 120/200 (60 %), ..."),
     # a line every 10 % of the steps (bayes_tfcrds.output.progress)
     steps = re.findall(r"line \| CRDS ensemble 0: (\d+)/", text)
@@ -415,7 +415,7 @@ def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_
     bundle, ref = reference
     out = tmp_path / "run"
     run = _Watched(bundle, out)
-    run.wait_for(_sampling_line_past_first_commit, "the line posterior past its first commit")
+    run.wait_for(_sampling_line_past_first_commit, "the line posterior past its first commits")
     rc = run.stop(sig)
     if sig == signal.SIGINT:
         assert rc == 130 and "interrupted: the chains sampled so far are kept" in run.text, (
@@ -427,11 +427,14 @@ def test_budget_stopped_mid_sampling_resumes_to_the_same_samples(reference, tmp_
     # stopped mid-sampling: H complete, the line run partly committed, nothing written yet
     assert _iterations(out / "chains_h.h5") == [STEPS] * 4
     line = _iterations(out / "chains_line.h5")
-    # all ensembles at one step: the first commit (SIGKILL) or the steps taken (SIGINT commits
-    # them). The 80 steps left after step 120 take about 0.3 s; on a loaded machine the signal can
-    # land after the last one, in the diagnostics, and the line chains are then complete (the
-    # resume below must still read them and not sample again)
-    assert line == [line[0]] * 4 and STEPS // 2 <= line[0] <= STEPS, line
+    # SIGINT commits the steps taken by all ensembles alike. SIGKILL lands at or after the commit
+    # that follows step 120's progress line (the ensembles are committed one after another, a few
+    # ms each): they may be one commit (STEPS // 10 steps) apart, which resume rolls back to the
+    # step all of them hold. On a loaded machine the signal can land after the last step, in the
+    # diagnostics, and the line chains are then complete (the resume must still read them and not
+    # sample again)
+    assert STEPS // 2 <= min(line) and max(line) <= STEPS, line
+    assert max(line) - min(line) <= (0 if sig == signal.SIGINT else STEPS // 10), line
     assert not (out / "budget.json").exists()
     h_stat = (out / "chains_h.h5").stat()
     kept = {e: _chains_rows(out / "chains_line.h5", e) for e in (0, 1)}
