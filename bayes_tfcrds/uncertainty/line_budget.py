@@ -68,6 +68,13 @@ from bayes_tfcrds.inference.posteriors import H_PRIOR
 from bayes_tfcrds.output.files import atomic_write_text, folder_lock
 from bayes_tfcrds.output.progress import StageClock
 from bayes_tfcrds.physics.linedata import load_line
+from bayes_tfcrds.uncertainty.doppler import (
+    ROW_NAME,
+    DopplerSensitivity,
+    doppler_sensitivity,
+    temperature_row,
+    without_temperature_row,
+)
 from bayes_tfcrds.uncertainty.instrument import cmds_type_b, instrument_rows
 from bayes_tfcrds.uncertainty.line_shape_models import (
     DEFAULT_CANDIDATES,
@@ -652,6 +659,15 @@ def _h_shifted_areas(inp, dt, sens, split, h_star, refined, h_parts, a_noise, u_
     return a_noise + d_ref + d_beat[pair], r_noise_ref, d_beat
 
 
+def _doppler(inp: _Inputs, dt: _DecayTimes) -> DopplerSensitivity:
+    """Step 6d: dA/dT and dA_ref/dT through the fits' Doppler width (least squares, at T +- 1 K)."""
+    cm = ref = None
+    if inp.config.cmds is not None:
+        cm = cmds_spectrum(inp.config.cmds)
+        ref = fit_line([cm], inp.options.profile, inp.gd, inp.nu_ref)
+    return doppler_sensitivity(dt.spec, dt.lsq, cm, ref, inp.options.profile, inp.sample)
+
+
 def _reference_area(inp: _Inputs, runs: dict):
     """Step 6: A_ref draws from the CMDS shifts (Laplace or emcee) and the fit's dof.
 
@@ -958,12 +974,15 @@ def _h_model_form(inp: _Inputs, choice: _FormChoice, n_r_sampled: bool):
     return comp, record
 
 
-def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -> Budget:
+def _budget_a(
+    options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=(), temperature=None
+) -> Budget:
     """Step 7.
 
     The GUM budget of A: ring-down noise, the H rows (``h_rows`` = (components, correlations), empty
-    for CRDS), the t_cut choice, the line-shape model and the instrument rows (``instrument``:
-    InstrumentRow list).
+    for CRDS), the t_cut choice, the line-shape model, the instrument rows (``instrument``:
+    InstrumentRow list) and T through the fit's Doppler width (``temperature``: a Component,
+    :func:`~bayes_tfcrds.uncertainty.doppler.temperature_row`).
     """
     comps = [
         Component(
@@ -1007,6 +1026,8 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
         )
     )
     comps += [row.component for row in instrument]
+    if temperature is not None:
+        comps.append(temperature)
     return Budget(
         quantity="line area A",
         # the model-averaged A: the profile's posterior mean moved by A_bar - A(profile)
@@ -1017,7 +1038,9 @@ def _budget_a(options, dt: _DecayTimes, a_total, u_dir, h_rows, instrument=()) -
     )
 
 
-def _budget_s(sample, a_hat: float, u_a: float, line=None, dof_a: float = np.inf) -> Budget:
+def _budget_s(
+    sample, a_hat: float, u_a: float, line=None, dof_a: float = np.inf, da_dt: float = 0.0
+) -> Budget:
     """Step 8: the line intensity at the line data's T_ref (296 K) from A, p, x and T.
 
     S(T_ref) = A k_B T/(p x) Q(T)/Q(T_ref) exp(E''/k_B (1/T - 1/T_ref)) times the
@@ -1029,11 +1052,19 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None, dof_a: float = np.inf
     the number density. u(p), u(T) from the bundle; it has no u(x). dof: A's effective dof
     (``dof_a``), p and T 50 (u judged reliable to 10 %, GUM G.4.2). The model is
     :func:`intensity_model`, which the Monte Carlo of the budget evaluates too.
+
+    The line fit also reads T (its Doppler width), so A = A(T): ``da_dt`` (Hz/m per K) is that
+    derivative, and ``u_a`` must then be A's u without its T row (``doppler``). T's sensitivity
+    is the total one, S (d ln S(T_ref)/dT + d ln A/dT): one input, one row, no double count.
     """
     line = load_line() if line is None else line
     t, p, x = sample.temperature_k, sample.pressure_pa, sample.mole_fraction
     s_ref = float(intensity_model(line)(a_hat, p, t, x))
     dlns_dt = 1.0 / t - float(line.intensity_log_derivative(t))
+    dlna_dt = da_dt / a_hat
+    through_a = (
+        f"; + d ln A/dT = {dlna_dt:+.4g} /K through the line fit's Doppler width" if da_dt else ""
+    )
     return Budget(
         quantity=f"line intensity S(T_ref = {line.temperature_k:g} K)",
         value=s_ref,
@@ -1046,7 +1077,9 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None, dof_a: float = np.inf
                 s_ref / a_hat,
                 "Hz/m",
                 dof=dof_a,
-                note="combined u(A) from the A budget; dof = its effective dof",
+                note="combined u(A) from the A budget"
+                + (" without its T row (T is the row below)" if da_dt else "")
+                + "; dof = its effective dof",
             ),
             Component(
                 "pressure p",
@@ -1061,12 +1094,12 @@ def _budget_s(sample, a_hat: float, u_a: float, line=None, dof_a: float = np.inf
                 "temperature T",
                 t,
                 sample.temperature_u_k,
-                s_ref * dlns_dt,
+                s_ref * (dlns_dt + dlna_dt),
                 "K",
                 dof=dof_from_relative_u(REL_U_CERTIFICATE),
                 note="Type B, normal: bundle /sample@temperature_u_k; dof 50; "
                 "d ln S(T_ref)/dT = 1/T + d ln Q/dT - "
-                f"E''/(k_B T^2) = {dlns_dt:+.4g} /K (Q: TIPS-2021)",
+                f"E''/(k_B T^2) = {dlns_dt:+.4g} /K (Q: TIPS-2021)" + through_a,
             ),
             Component(
                 "mole fraction x",
@@ -1090,23 +1123,58 @@ def intensity_model(line):
 
 
 def _budget_ratio(
-    a_hat: float, u_a: float, a_ref, dof_a: float = np.inf, dof_ref: float = np.inf
+    a_hat: float,
+    u_a: float,
+    a_ref,
+    dof_a: float = np.inf,
+    dof_ref: float = np.inf,
+    doppler: DopplerSensitivity | None = None,
 ) -> Budget | None:
     """Step 9: A/A_ref with the CMDS posterior's u; None without CMDS.
 
-    dof: A's effective dof and the CMDS fit's n_points - n_params (``dof_ref``).
+    dof: A's effective dof and the CMDS fit's n_points - n_params (``dof_ref``). With
+    ``doppler`` both fits read T (their Doppler width): ``u_a`` is then A's u without its T row,
+    and T has its own row, c = (dA/dT - r dA_ref/dT)/A_ref, in which the two fits' shifts
+    largely cancel.
     """
     if a_ref is None:
         return None
     a_ref_hat = float(np.mean(a_ref))
     u_ref = float(np.std(a_ref))
     r = a_hat / a_ref_hat
+    t_row = ()
+    if doppler is not None and doppler.da_ref_dt is not None:
+        c_t = (doppler.da_dt - r * doppler.da_ref_dt) / a_ref_hat
+        t_row = (
+            Component(
+                ROW_NAME,
+                doppler.temperature_k,
+                doppler.temperature_u_k,
+                c_t,
+                "K",
+                dof=dof_from_relative_u(REL_U_CERTIFICATE),
+                note="Type B, normal: bundle /sample@temperature_u_k; both fits hold the "
+                "Doppler HWHM at GammaD(T): c = (dA/dT - (A/A_ref) dA_ref/dT)/A_ref, "
+                f"d ln A/d ln T = {doppler.da_dt * doppler.temperature_k / a_hat:+.3g}, "
+                f"d ln A_ref/d ln T = {doppler.da_ref_dt * doppler.temperature_k / a_ref_hat:+.3g}",
+            ),
+        )
     return Budget(
         quantity="A/A_ref",
         value=r,
         unit="1",
         components=(
-            Component("line area A (CRDS)", a_hat, u_a, 1.0 / a_ref_hat, "Hz/m", dof=dof_a),
+            Component(
+                "line area A (CRDS)",
+                a_hat,
+                u_a,
+                1.0 / a_ref_hat,
+                "Hz/m",
+                dof=dof_a,
+                note="combined u(A) from the A budget without its T row (T is its own row)"
+                if t_row
+                else "",
+            ),
             Component(
                 "reference area A_ref (CMDS)",
                 a_ref_hat,
@@ -1117,6 +1185,7 @@ def _budget_ratio(
                 note="Type A: CMDS posterior; dof = CMDS points - line parameters of the fit",
             ),
             cmds_type_b(a_ref_hat, r),
+            *t_row,
         ),
     )
 
@@ -1531,6 +1600,7 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
         instrument_rows, config, options, h_star, dt.spec, inp.gd, inp.nu_ref
     )  # 6c.
     form_job = side.submit(_h_model_form, inp, choice, "n_r" in names) if tf else None  # 6b.
+    doppler_job = side.submit(_doppler, inp, dt)  # 6d.
     tau_job = side.submit(_tau_table, inp, dt, h_star, h_draws, names)  # 11.
     if "h" in runs:  # after the side steps, which this process will wait for
         announce("h", runs["h"])
@@ -1572,13 +1642,23 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
         clock.done("H model form")
     instrument = instrument_job.result()  # 6c.
     clock.done("instrument rows")
-    budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument)  # 7-9. budgets
-    nu_a = budget_a.effective_dof
-    budget_s = _budget_s(inp.sample, budget_a.value, budget_a.combined_u, dof_a=nu_a)
-    budget_ratio = _budget_ratio(budget_a.value, budget_a.combined_u, a_ref, nu_a, dof_ref)
+    doppler = doppler_job.result()  # 6d.
+    t_row = temperature_row(doppler, dt.lsq.line_area, dof_from_relative_u(REL_U_CERTIFICATE))
+    budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument, t_row)  # 7-9. budgets
+    # S and A/A_ref read T twice (A's fit and their own model): A enters without its T row
+    a_but_t = without_temperature_row(budget_a)
+    u_a, nu_a = a_but_t.combined_u, a_but_t.effective_dof
+    budget_s = _budget_s(inp.sample, budget_a.value, u_a, dof_a=nu_a, da_dt=doppler.da_dt)
+    budget_ratio = _budget_ratio(budget_a.value, u_a, a_ref, nu_a, dof_ref, doppler)
     summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, h_star)
     mc = budget_monte_carlo(
-        budget_a, a_total, inp.sample, a_ref, inp.streams["mc"], intensity_model(load_line())
+        budget_a,
+        a_total,
+        inp.sample,
+        a_ref,
+        inp.streams["mc"],
+        intensity_model(load_line()),
+        doppler=doppler,
     )
     budgets = {"line_area": budget_a, "intensity": budget_s, "ratio": budget_ratio}
     add_to_summary(summary, budgets, mc)
@@ -1595,6 +1675,9 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
         summary["transfer_function"]["identification"] = ident.to_dict()
     _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
     summary["priors"] = priors_summary(runs)
+    summary["doppler_width"] = doppler.to_dict(
+        dt.lsq.line_area, None if a_ref is None else float(np.mean(a_ref))
+    )
     clock.done("budgets")
     samples = {
         "a_total": a_total,

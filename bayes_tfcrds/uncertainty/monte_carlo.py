@@ -11,6 +11,10 @@ The model is the one the GUM budgets linearise, evaluated at every draw:
   no distribution), x exact (the bundle has no u(x)). The isotopic abundance is not an input of
   the shipped model (HITRAN intensities include the natural abundance and x is that of CO).
 * A/A_ref with A_ref from the CMDS posterior draws (resampled) times its rectangular Type B.
+* T, when the budget has the row of T through the fits' Doppler width
+  (:mod:`~bayes_tfcrds.uncertainty.doppler`): one normal draw of T per trial moves A by
+  dA/dT (T - T_hat), A_ref by dA_ref/dT (T - T_hat) and enters S's model, so the three
+  quantities see the same T, as the GUM budgets' total sensitivities do.
 
 Each by :func:`~bayes_tfcrds.core.mcm.adaptive_monte_carlo` (2 significant digits of u, 95 %),
 in the budget's SI units (A in Hz/m, S in cm/molecule); unit conversion happens at the edges.
@@ -31,6 +35,7 @@ from bayes_tfcrds.core.mcm import (
     Rectangular,
     adaptive_monte_carlo,
 )
+from bayes_tfcrds.uncertainty.doppler import ROW_NAME, DopplerSensitivity
 from bayes_tfcrds.uncertainty.instrument import CMDS_SPREAD_REL
 
 # rows of the A budget that the H-shifted posterior draws of A already carry
@@ -52,7 +57,8 @@ def _effect_inputs(budget_a: Budget) -> list:
     """The A budget's rows not in the posterior draws: zero-mean effects times their c_i."""
     out = []
     for c in budget_a.components:
-        if c.name.startswith(STATISTICAL_ROWS) or c.u == 0.0:
+        # T's row: a shared input of every model below (a draw of T, not an effect of A alone)
+        if c.name.startswith(STATISTICAL_ROWS) or c.name == ROW_NAME or c.u == 0.0:
             continue
         u = abs(c.sensitivity) * c.u  # in A's unit: the model adds c_i delta_i
         out.append(Rectangular.from_u(0.0, u) if "rectangular" in c.note.lower() else Normal(0, u))
@@ -71,38 +77,61 @@ def budget_monte_carlo(
     rng: np.random.Generator,
     s_model,
     max_trials: int = MAX_TRIALS,
+    doppler: DopplerSensitivity | None = None,
 ) -> BudgetMonteCarlo:
     """Adaptive Monte Carlo of A, S(T_ref) and A/A_ref (module doc).
 
     ``sample``: the bundle's (p, T, x and their u); ``s_model``: S(T_ref) = s_model(A, p, T, x),
-    the function the GUM budget of S evaluates (``line_budget.intensity_model``).
+    the function the GUM budget of S evaluates (``line_budget.intensity_model``). ``doppler``:
+    dA/dT and dA_ref/dT through the fits' Doppler width (None: the fits do not read T).
     """
     effects = _effect_inputs(budget_a)
     a_inputs = [Empirical(np.asarray(a_total, float)), *effects]
     n_a = len(a_inputs)
+    t_hat = sample.temperature_k
+    temperature = Normal(t_hat, sample.temperature_u_k)
+    da_dt = 0.0 if doppler is None else doppler.da_dt
+    da_ref_dt = 0.0 if doppler is None or doppler.da_ref_dt is None else doppler.da_ref_dt
 
     def run(model, inputs):
         return adaptive_monte_carlo(model, inputs, rng, max_trials=max_trials)
 
-    res_a = run(_area_sum, a_inputs)
+    def area(x, t):  # A of one set of draws: its statistical draw, the effects and T's shift
+        return _area_sum(*x[:n_a]) + da_dt * (t - t_hat)
+
+    if doppler is None:
+        res_a = run(_area_sum, a_inputs)
+    else:
+        res_a = run(lambda *x: area(x, x[n_a]), a_inputs + [temperature])
     state = [
         Normal(sample.pressure_pa, sample.pressure_u_pa),
-        Normal(sample.temperature_k, sample.temperature_u_k),
+        temperature,
         Normal(sample.mole_fraction, 0.0),
     ]
-    res_s = run(lambda *x: s_model(_area_sum(*x[:n_a]), *x[n_a:]), a_inputs + state)
+    res_s = run(lambda *x: s_model(area(x, x[n_a + 1]), *x[n_a:]), a_inputs + state)
     res_r = None
     if a_ref is not None:
-        # A_ref: its posterior draws times (1 + the CMDS Type B relative error, rectangular)
+        # A_ref: its posterior draws, shifted with T, times (1 + the CMDS Type B relative error,
+        # rectangular)
         cmds_b = Rectangular.from_u(0.0, CMDS_SPREAD_REL / 2.0 / np.sqrt(3.0))
         res_r = run(
-            lambda *x: _area_sum(*x[:n_a]) / (x[n_a] * (1.0 + x[n_a + 1])),
-            a_inputs + [Empirical(np.asarray(a_ref)), cmds_b],
+            lambda *x: (
+                area(x, x[n_a + 2])
+                / ((x[n_a] + da_ref_dt * (x[n_a + 2] - t_hat)) * (1.0 + x[n_a + 1]))
+            ),
+            a_inputs + [Empirical(np.asarray(a_ref)), cmds_b, temperature],
         )
     note = (
         f"A: {np.size(a_total)} H-shifted posterior draws of A (ring-down noise and H, "
         f"resampled) + {len(effects)} other rows (rectangular where the row says so, else "
-        "normal); S: p, T normal with the bundle's u, x exact; A_ref: CMDS posterior draws times "
+        "normal)"
+        + (
+            "; T normal with the bundle's u, one draw per trial shifting A, A_ref (dA/dT through "
+            "the fits' Doppler width) and S's model alike"
+            if doppler is not None
+            else ""
+        )
+        + "; S: p, T normal with the bundle's u, x exact; A_ref: CMDS posterior draws times "
         "its rectangular Type B"
     )
     return BudgetMonteCarlo(res_a, res_s, res_r, note)

@@ -268,6 +268,32 @@ MULTIMODAL_STEPS = 3
 MODE_INFLATE = 1.0  # the mode-jump proposal's scale against each optimum's Laplace covariance
 
 
+#: smallest eigenvalue kept in a mode's correlation matrix when it is not positive definite to
+#: rounding: eigen-decompositions of a d x d correlation matrix are exact to ~d eps (1e-15), so
+#: 1e-12 lifts rounding's negative eigenvalues and leaves every resolved direction as it was
+CORR_EIG_FLOOR = 1e-12
+
+
+def _positive_definite(corr, sd):
+    """corr * sd sd^T (plus a 1e-9 sd jitter), positive definite even where ``corr`` is not.
+
+    A beat-note fit whose resonance the data leave unconstrained has a covariance of condition
+    ~1e25 (sd of f_c ~ 2e9 Hz); its correlation matrix, rescaled to the capped sd, can then be
+    singular to rounding, with an eigenvalue of -3e-15 (coverage campaign 18 with numpy 2.4's
+    arithmetic). Only then are its eigenvalues floored at CORR_EIG_FLOOR (unit diagonal
+    restored); a matrix that passes Cholesky is returned as it always was.
+    """
+    cov = corr * np.outer(sd, sd) + np.diag((1e-9 * sd) ** 2)
+    try:
+        np.linalg.cholesky(0.5 * (cov + cov.T))
+        return cov
+    except np.linalg.LinAlgError:
+        val, vec = np.linalg.eigh(0.5 * (corr + corr.T))
+        fixed = (vec * np.maximum(val, CORR_EIG_FLOOR)) @ vec.T
+        d = np.sqrt(np.diag(fixed))
+        return fixed / np.outer(d, d) * np.outer(sd, sd) + np.diag((1e-9 * sd) ** 2)
+
+
 def beat_modes(post, beat) -> MixtureProposal:
     """The beat-note optima inside the posterior's support as a Student-t mixture (sample space).
 
@@ -297,7 +323,7 @@ def beat_modes(post, beat) -> MixtureProposal:
             continue  # a plateau, not a mode: part of Eq. 2 has left the band (see docstring)
         corr = cov / np.outer(sd, sd)
         sd = MODE_INFLATE * np.minimum(sd, 0.25 * np.where(np.isfinite(width), width, sd))
-        cov = corr * np.outer(sd, sd) + np.diag((1e-9 * sd) ** 2)
+        cov = _positive_definite(corr, sd)
         means.append(m)
         covs.append(cov)
         log_ev.append(-0.5 * fit.chi2 + 0.5 * np.linalg.slogdet(cov)[1])

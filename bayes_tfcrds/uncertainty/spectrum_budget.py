@@ -2,8 +2,9 @@
 
 Without ring-down records there is no detection chain to model, no t_cut to choose and no
 posterior of decay times: the budget of A holds the line fit's own uncertainty and the
-line-shape model (the chosen profile against an alternative), and the intensity budget adds
-p, T and x as the full budget does (``line_budget._budget_s``). Labelled as spectrum-level
+line-shape model (the chosen profile against an alternative), and T through the fit's Doppler
+width (:mod:`~bayes_tfcrds.uncertainty.doppler`); the intensity budget adds p, T and x as the
+full budget does (``line_budget._budget_s``). Labelled as spectrum-level
 input wherever it is shown, so it is never read as a TF-CRDS budget.
 """
 
@@ -13,10 +14,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.core.gum import Budget, Component
+from bayes_tfcrds.core.gum import Budget, Component, dof_from_relative_u
 from bayes_tfcrds.fit.line import LineFit, fit_line
 from bayes_tfcrds.fit.line_analysis import SPECTRUM_LEVEL, LineAnalysis, doppler_of
-from bayes_tfcrds.uncertainty.line_budget import _budget_s
+from bayes_tfcrds.uncertainty.doppler import doppler_sensitivity, temperature_row
+from bayes_tfcrds.uncertainty.line_budget import REL_U_CERTIFICATE, _budget_s
+
+#: dof of the bundle's u(T): judged reliable to 10 %, as in the full budget (GUM G.4.2)
+T_DOF = dof_from_relative_u(REL_U_CERTIFICATE)
 
 
 def alternative_profile(profile: str) -> str:
@@ -56,6 +61,7 @@ def spectrum_budget(analysis: LineAnalysis, sample) -> SpectrumBudget:
     lf = analysis.line_fit
     alt_name = alternative_profile(analysis.profile)
     alt = fit_line([analysis.spectrum], alt_name, doppler_of(sample), sample.nu0_hz)
+    sens = doppler_sensitivity(analysis.spectrum, lf, None, None, analysis.profile, sample)
     budget_a = Budget(
         quantity=f"line area A ({SPECTRUM_LEVEL})",
         value=float(lf.line_area),
@@ -79,5 +85,12 @@ def spectrum_budget(analysis: LineAnalysis, sample) -> SpectrumBudget:
             ),
         ),
     )
-    budget_s = _budget_s(sample, float(lf.line_area), budget_a.combined_u)
+    u_a_but_t = budget_a.combined_u  # S's model reads T itself: A enters without T's row
+    budget_a = Budget(  # T through the fit's Doppler width, as in the full budget
+        budget_a.quantity,
+        budget_a.value,
+        budget_a.unit,
+        (*budget_a.components, temperature_row(sens, lf.line_area, T_DOF)),
+    )
+    budget_s = _budget_s(sample, float(lf.line_area), u_a_but_t, da_dt=sens.da_dt)
     return SpectrumBudget(analysis, alt, budget_a, budget_s)

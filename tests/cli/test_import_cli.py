@@ -79,7 +79,11 @@ def test_linefit_spectrum_recovers_a_known_area(tmp_path, capsys):
     budget = res["budget"]
     assert budget["input"] == res["input"]
     names = [c["name"] for c in budget["line_area"]["components"]]
-    assert names == ["line fit (spectrum-level input)", "line-shape model (voigt vs sdvp)"]
+    assert names == [
+        "line fit (spectrum-level input)",
+        "line-shape model (voigt vs sdvp)",
+        "temperature T (Doppler width of the line fit)",
+    ]
     assert budget["line_area"]["value"] == got["value_si"]
     # S(296 K) two ways: the budget (reference_intensity_from_area) and the line fit's entry
     # (A/N times intensity_ratio); equal up to rounding when both are right
