@@ -72,6 +72,7 @@ class LineFit:
     scaled: bool = False
     at_bound: tuple = ()
     unphysical: tuple = ()
+    physical_bounds: bool = False  # fitted with Gamma2, nu_VC >= 0 (``fit_line``'s option)
 
     def value(self, name):
         return float(self.values[self.names.index(name)])
@@ -358,4 +359,5 @@ def fit_line(
         scaled=scale_by_chi2,
         at_bound=at_bound,
         unphysical=tuple(n for n, v in zip(names, theta) if n in PHYSICAL_NONNEGATIVE and v < 0),
+        physical_bounds=bool(physical_bounds),
     )

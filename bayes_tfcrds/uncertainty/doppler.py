@@ -63,16 +63,19 @@ def area_temperature_derivative(spectra, profile: str, base, sample, step_k: flo
     """dA/dT (Hz/m per K) of the least-squares line fit to ``spectra`` at fixed data.
 
     Central difference of two fits with the Doppler HWHM of T +- ``step_k`` (K), made as
-    ``base`` (the analysis' fit at T) was: same profile, line centre and default start, so the
-    derivative is that of the estimator the budget reports. (Not started from ``base``: a width
-    that ended on its bound, ~1e-17 Hz, would set the fitter's parameter scale and leave its
-    Fisher matrix singular.)
+    ``base`` (the analysis' fit at T) was: same profile, line centre, bounds and default start,
+    so the derivative is that of the estimator the budget reports. (Not started from
+    ``base``: a width that ended on its bound, ~1e-17 Hz, would set the fitter's parameter
+    scale and leave its Fisher matrix singular.) It is the derivative of the primary profile's
+    A: the model-averaged A the budget reports is taken to move with T as that A does (the
+    profiles' spread is a row of its own).
     """
     t = sample.temperature_k
 
     def area(temperature_k):
         gd = float(doppler_hwhm_hz(sample.nu0_hz, temperature_k, sample.mass_u))
-        return fit_line(spectra, profile, gd, base.nu_ref_hz).line_area
+        fit = fit_line(spectra, profile, gd, base.nu_ref_hz, physical_bounds=base.physical_bounds)
+        return fit.line_area
 
     return (area(t + step_k) - area(t - step_k)) / (2.0 * step_k)
 

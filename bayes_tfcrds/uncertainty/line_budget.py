@@ -1113,6 +1113,19 @@ def _budget_s(
     )
 
 
+def _budgets_s_and_ratio(sample, budget_a: Budget, a_ref, dof_ref, doppler):
+    """Steps 8-9: the budgets of S(T_ref) and A/A_ref from A's budget (with its T row).
+
+    Both models read T a second time (S's conversion; A_ref's fit), so A enters them with u and
+    effective dof of its budget *without* the T row, and T has one row of total sensitivity.
+    """
+    a_but_t = without_temperature_row(budget_a)
+    u_a, nu_a = a_but_t.combined_u, a_but_t.effective_dof
+    budget_s = _budget_s(sample, budget_a.value, u_a, dof_a=nu_a, da_dt=doppler.da_dt)
+    budget_ratio = _budget_ratio(budget_a.value, u_a, a_ref, nu_a, dof_ref, doppler)
+    return budget_s, budget_ratio
+
+
 def intensity_model(line):
     """S(T_ref) (cm/molecule) = f(A [Hz/m], p [Pa], T [K], x): the budget's measurement model.
 
@@ -1143,8 +1156,10 @@ def _budget_ratio(
     u_ref = float(np.std(a_ref))
     r = a_hat / a_ref_hat
     t_row = ()
-    if doppler is not None and doppler.da_ref_dt is not None:
-        c_t = (doppler.da_dt - r * doppler.da_ref_dt) / a_ref_hat
+    if doppler is not None:
+        # without the CMDS fit's derivative, A's own path only (u_a lacks it)
+        da_ref_dt = 0.0 if doppler.da_ref_dt is None else doppler.da_ref_dt
+        c_t = (doppler.da_dt - r * da_ref_dt) / a_ref_hat
         t_row = (
             Component(
                 ROW_NAME,
@@ -1156,7 +1171,7 @@ def _budget_ratio(
                 note="Type B, normal: bundle /sample@temperature_u_k; both fits hold the "
                 "Doppler HWHM at GammaD(T): c = (dA/dT - (A/A_ref) dA_ref/dT)/A_ref, "
                 f"d ln A/d ln T = {doppler.da_dt * doppler.temperature_k / a_hat:+.3g}, "
-                f"d ln A_ref/d ln T = {doppler.da_ref_dt * doppler.temperature_k / a_ref_hat:+.3g}",
+                f"d ln A_ref/d ln T = {da_ref_dt * doppler.temperature_k / a_ref_hat:+.3g}",
             ),
         )
     return Budget(
@@ -1199,8 +1214,13 @@ def _summary(
     a_total,
     sens_a: dict,
     h_star,
+    doppler: DopplerSensitivity | None = None,
 ) -> dict:
-    """The ``budget.json`` payload (cm^-2 and cm/molecule at this edge, SI beside them)."""
+    """The ``budget.json`` payload (cm^-2 and cm/molecule at this edge, SI beside them).
+
+    ``doppler``: how A and A_ref move with T (their fits' Doppler width), for E_n, whose
+    A - A_ref then carries T once, through dA/dT - dA_ref/dT.
+    """
     options = inp.options
     a_hat, u_a = budget_a.value, budget_a.combined_u
     s_val = budget_s.value
@@ -1282,9 +1302,8 @@ def _summary(
         }
     if budget_ratio is not None:
         # A_ref's u: the CMDS posterior and the CMDS Type B row together, as in the ratio table
-        ref_rows = budget_ratio.components[1:]
-        a_ref_hat = ref_rows[0].value
-        u_ref = float(np.hypot.reduce([c.u for c in ref_rows]))
+        # (T, the ratio's last row, acts on A and A_ref together: in E_n below)
+        a_ref_hat, u_ref = reference_value_and_u(budget_ratio)
         summary["reference_area"] = {
             "value": float(line_area_to_cm2(a_ref_hat)),
             "u": float(line_area_to_cm2(u_ref)),
@@ -1294,10 +1313,33 @@ def _summary(
             "unit_si": "Hz/m",
         }
         summary["ratio"] = {"value": budget_ratio.value, "u": budget_ratio.combined_u, "unit": "1"}
-        summary["en"] = normalized_error(a_hat, 2 * u_a, a_ref_hat, 2 * u_ref)
+        summary["en"] = normalized_error(a_hat, 2 * _u_a_for_en(budget_a, doppler), a_ref_hat,
+                                         2 * u_ref)  # fmt: skip
     else:
         summary["reference_area"] = summary["ratio"] = summary["en"] = None
     return summary
+
+
+#: the ratio table's rows of A_ref (its CMDS posterior and the CMDS Type B)
+REFERENCE_ROWS = "reference area A_ref (CMDS)"
+
+
+def reference_value_and_u(budget_ratio: Budget) -> tuple:
+    """(A_ref, u(A_ref)) in Hz/m from the ratio table: its CMDS posterior and Type B rows."""
+    rows = [c for c in budget_ratio.components if c.name.startswith(REFERENCE_ROWS)]
+    return rows[0].value, float(np.hypot.reduce([c.u for c in rows]))
+
+
+def _u_a_for_en(budget_a: Budget, doppler: DopplerSensitivity | None) -> float:
+    """u(A) for E_n = (A - A_ref)/sqrt(U_A^2 + U_ref^2), T's part moved onto A - A_ref.
+
+    Both fits read the same T, so T enters A - A_ref once, as (dA/dT - dA_ref/dT) u(T); the
+    rest of u(A) is A's budget without its T row. Without the CMDS derivative: u_c(A).
+    """
+    if doppler is None or doppler.da_ref_dt is None:
+        return budget_a.combined_u
+    u_t = (doppler.da_dt - doppler.da_ref_dt) * doppler.temperature_u_k
+    return float(np.hypot(without_temperature_row(budget_a).combined_u, u_t))
 
 
 def _n_r_record(h_draws, names) -> dict:
@@ -1645,12 +1687,8 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
     doppler = doppler_job.result()  # 6d.
     t_row = temperature_row(doppler, dt.lsq.line_area, dof_from_relative_u(REL_U_CERTIFICATE))
     budget_a = _budget_a(options, dt, a_total, u_dir, h_rows, instrument, t_row)  # 7-9. budgets
-    # S and A/A_ref read T twice (A's fit and their own model): A enters without its T row
-    a_but_t = without_temperature_row(budget_a)
-    u_a, nu_a = a_but_t.combined_u, a_but_t.effective_dof
-    budget_s = _budget_s(inp.sample, budget_a.value, u_a, dof_a=nu_a, da_dt=doppler.da_dt)
-    budget_ratio = _budget_ratio(budget_a.value, u_a, a_ref, nu_a, dof_ref, doppler)
-    summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, h_star)
+    budget_s, budget_ratio = _budgets_s_and_ratio(inp.sample, budget_a, a_ref, dof_ref, doppler)
+    summary = _summary(inp, dt, budget_a, budget_s, budget_ratio, a_total, sens_a, h_star, doppler)
     mc = budget_monte_carlo(
         budget_a,
         a_total,

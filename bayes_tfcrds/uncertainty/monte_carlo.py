@@ -85,6 +85,8 @@ def budget_monte_carlo(
     the function the GUM budget of S evaluates (``line_budget.intensity_model``). ``doppler``:
     dA/dT and dA_ref/dT through the fits' Doppler width (None: the fits do not read T).
     """
+    if doppler is None and any(c.name == ROW_NAME for c in budget_a.components):
+        raise ValueError(f"A's budget has the row {ROW_NAME!r}: pass its DopplerSensitivity")
     effects = _effect_inputs(budget_a)
     a_inputs = [Empirical(np.asarray(a_total, float)), *effects]
     n_a = len(a_inputs)

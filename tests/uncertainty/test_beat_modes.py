@@ -323,27 +323,24 @@ def test_a_refinement_that_reaches_no_draw_is_linearised_again_where_the_posteri
 
 
 def test_mode_covariance_is_positive_definite_when_its_correlation_is_singular_to_rounding():
-    """A rank-deficient correlation (a plateau's: three directions for five parameters) rescaled
-    to very different sd is lifted to positive definite, unit diagonal kept to 1e-9 (the
-    jitter); a positive-definite one comes back bit for bit as before the repair existed."""
+    """A correlation matrix of a plateau (two directions for five parameters) with eigenvalues
+    of -1e-13 where rounding put them (campaign 18: -3e-15), rescaled to very different sd, is
+    lifted to positive definite, unit diagonal kept to 1e-9 (the jitter); a positive-definite
+    one comes back bit for bit as before the repair existed."""
     from bayes_tfcrds.uncertainty.posterior_steps import _positive_definite
 
     rng = np.random.default_rng(2)
     sd = np.array([5.8, 491.0, 5.8, 3.5, 2.9e-4])
-    singular = 0
-    for _ in range(200):
-        v = rng.standard_normal((5, 3))
-        c = v @ v.T
+    for _ in range(50):
+        vec, _ = np.linalg.qr(rng.standard_normal((5, 5)))
+        val = np.array([-1e-13, -1e-13, -1e-13, 2.0, 3.0])
+        c = (vec * val) @ vec.T
         corr = c / np.sqrt(np.outer(np.diag(c), np.diag(c)))
-        plain = corr * np.outer(sd, sd) + np.diag((1e-9 * sd) ** 2)
-        try:
-            np.linalg.cholesky(plain)
-        except np.linalg.LinAlgError:
-            singular += 1
+        with pytest.raises(np.linalg.LinAlgError):  # the plain matrix fails Cholesky
+            np.linalg.cholesky(corr * np.outer(sd, sd) + np.diag((1e-9 * sd) ** 2))
         cov = _positive_definite(corr, sd)
         np.linalg.cholesky(0.5 * (cov + cov.T))  # raises if not positive definite
         np.testing.assert_allclose(np.sqrt(np.diag(cov)), sd, rtol=1e-9)
-    assert singular > 0  # the repair was exercised, not only the plain path
     good = np.array([[1.0, 0.3], [0.3, 1.0]])
     s2 = np.array([2.0, 5.0])
     assert np.array_equal(

@@ -128,6 +128,8 @@ def test_ratio_budget_differences_the_two_fits_at_one_temperature():
     numeric = (
         _area_at(spec, 296.2) / _area_at(cm, 296.2) - _area_at(spec, 295.8) / _area_at(cm, 295.8)
     ) / 0.4
+    # c_T is a difference of two terms, each >= 10x it (asserted below): 2 % of c_T allows
+    # 0.2 % per term, the size of the central differences' third-order error over +-1 K
     assert c_t == pytest.approx(numeric, rel=0.02, abs=0)
     assert abs(sens.da_dt / a - sens.da_ref_dt / a_ref) > 0.1 * abs(sens.da_dt / a)
 
@@ -193,3 +195,65 @@ def test_spectrum_level_budget_carries_the_row():
     )
     total = plain + bud.budget_s.value * row.sensitivity / lf.line_area
     assert c_t == pytest.approx(total, rel=1e-9, abs=0)
+
+
+def test_s_and_ratio_budgets_take_a_without_its_temperature_row():
+    """The budgets of S and A/A_ref carry A's u and dof without its T row (T has its own row of
+    total sensitivity there): with u_c(A), T would count twice."""
+    sample, sens, budget_a, _ = _budgets(-0.0107, u_t=2.0)
+    sens = DopplerSensitivity(296.0, 2.0, sens.da_dt, 0.5 * sens.da_dt)
+    a_ref = np.full(8, 1.01 * budget_a.value)
+    bud_s, bud_r = lb._budgets_s_and_ratio(sample, budget_a, a_ref, 50.0, sens)
+    but_t = without_temperature_row(budget_a)
+    for bud, name in ((bud_s, "line area A"), (bud_r, "line area A (CRDS)")):
+        row = next(c for c in bud.components if c.name == name)
+        assert row.u == but_t.combined_u < 0.5 * budget_a.combined_u
+        assert row.dof == but_t.effective_dof
+    assert sum(c.name in ("temperature T", ROW_NAME) for c in bud_s.components) == 1
+    assert sum(c.name == ROW_NAME for c in bud_r.components) == 1
+
+
+def test_reference_u_and_en_count_temperature_once():
+    """u(A_ref) from the ratio table holds its two CMDS rows only (Hz/m; T, in K, is the
+    ratio's own row); E_n's u(A) moves T onto A - A_ref: equal derivatives cancel it."""
+    sample, sens, budget_a, _ = _budgets(-0.0107, u_t=2.0)
+    a = budget_a.value
+    a_ref = a * (1.0 + 1e-4 * np.random.default_rng(1).standard_normal(4000))
+    same = DopplerSensitivity(296.0, 2.0, sens.da_dt, sens.da_dt)
+    _, bud_r = lb._budgets_s_and_ratio(sample, budget_a, a_ref, 50.0, same)
+    value, u_ref = lb.reference_value_and_u(bud_r)
+    cmds_rows = [c.u for c in bud_r.components if c.name.startswith("reference area A_ref")]
+    assert len(cmds_rows) == 2 and u_ref == pytest.approx(np.hypot(*cmds_rows), rel=1e-12, abs=0)
+    assert value == pytest.approx(np.mean(a_ref), rel=1e-12, abs=0)
+    # equal d ln/dT: T cancels in A - A_ref (and nearly in A/A_ref)
+    assert lb._u_a_for_en(budget_a, same) == pytest.approx(
+        without_temperature_row(budget_a).combined_u, rel=1e-12, abs=0
+    )
+    assert lb._u_a_for_en(budget_a, sens) == pytest.approx(budget_a.combined_u, rel=1e-12, abs=0)
+
+
+def test_monte_carlo_ratio_draws_one_temperature_for_a_and_a_ref():
+    """u(T) = 2 K and equal d ln A/dT, d ln A_ref/dT (-0.0107 /K): T cancels in A/A_ref, whose
+    JCGM 101 u then equals the GUM table's (3 %: two significant digits), ~40x below what
+    separate T draws for A and A_ref would give."""
+    sample, _, budget_a, _ = _budgets(-0.0107, u_t=2.0)
+    a = budget_a.value
+    rng = np.random.default_rng(9)
+    a_ref = a * (1.0 + 1e-4 * rng.standard_normal(20000))
+    a_total = a * (1.0 + 1e-4 * rng.standard_normal(20000))
+    sens = DopplerSensitivity(296.0, 2.0, -0.0107 * a, -0.0107 * a)
+    _, bud_r = lb._budgets_s_and_ratio(sample, budget_a, a_ref, 50.0, sens)
+    mc = budget_monte_carlo(
+        budget_a, a_total, sample, a_ref, rng, lb.intensity_model(LINE), doppler=sens
+    )
+    assert mc.ratio.u == pytest.approx(bud_r.combined_u, rel=0.03, abs=0)
+    assert mc.ratio.u < 0.1 * np.sqrt(2.0) * 0.0107 * 2.0  # separate draws: ~0.03
+
+
+def test_monte_carlo_refuses_a_temperature_row_without_its_sensitivities():
+    sample, _, budget_a, _ = _budgets(-0.0107, u_t=2.0)
+    with pytest.raises(ValueError, match="DopplerSensitivity"):
+        budget_monte_carlo(
+            budget_a, np.full(10, budget_a.value), sample, None, np.random.default_rng(0),
+            lb.intensity_model(LINE),
+        )  # fmt: skip
