@@ -5,20 +5,51 @@ from __future__ import annotations
 import numpy as np
 
 
-def covariance_from_fisher(fisher: np.ndarray) -> np.ndarray:
+def covariance_from_fisher(fisher: np.ndarray, eig_floor: float | None = None) -> np.ndarray:
     """Inverse of a (batch of) Fisher matrices, with column equilibration.
 
     Parameters in natural units span many decades (f_r ~ 1e7 Hz beside gamma_r ~ 1), so the
     raw matrix is badly scaled; a pseudo-inverse would then silently drop the least-determined
     directions and report too small an uncertainty. Scaling by the diagonal first and
     inverting exactly keeps every direction; a genuinely singular matrix raises.
+
+    ``eig_floor`` is for fits where a direction the data do not determine is a result, not a
+    failure (a beat note in which part of Eq. 2 has left the measured band). There, a scaled
+    Fisher matrix whose smallest eigenvalue is below ``eig_floor`` times its largest is inverted
+    through its eigen-decomposition with the eigenvalues lifted to that floor: the undetermined
+    direction gets a large, finite variance and the covariance stays positive definite, where
+    the exact inverse of a matrix singular to rounding has variances of either sign (-1.6e21
+    Hz^2 for f_c in coverage campaign 18). Every other matrix is inverted exactly, as without it.
     """
     f = np.asarray(fisher, float)
     d = np.sqrt(np.abs(np.diagonal(f, axis1=-2, axis2=-1)))
     d = np.where(d > 0, d, 1.0)
     scaled = f / (d[..., :, None] * d[..., None, :])
-    inv = np.linalg.inv(scaled)
+    if eig_floor is None:
+        inv = np.linalg.inv(scaled)
+    else:
+        inv = _floored_inverse(scaled, eig_floor)
     return inv / (d[..., :, None] * d[..., None, :])
+
+
+def _floored_inverse(scaled: np.ndarray, eig_floor: float) -> np.ndarray:
+    """Inverse of symmetric ``scaled`` (unit diagonal), eigenvalues below the floor lifted.
+
+    Per matrix of a batch: those whose eigenvalues all clear ``eig_floor`` times their largest
+    are inverted exactly; one with no positive eigenvalue (nothing determined) raises.
+    """
+    n = scaled.shape[-1]
+    flat = scaled.reshape(-1, n, n)
+    val, vec = np.linalg.eigh(0.5 * (flat + np.swapaxes(flat, -1, -2)))
+    if not np.all(val[:, -1] > 0):
+        raise np.linalg.LinAlgError("a Fisher matrix without a positive eigenvalue")
+    floor = eig_floor * val[:, -1:]
+    ok = np.all(val >= floor, axis=-1)
+    out = np.empty_like(flat)
+    out[ok] = np.linalg.inv(flat[ok])
+    lifted = np.maximum(val[~ok], floor[~ok])
+    out[~ok] = np.einsum("mik,mk,mjk->mij", vec[~ok], 1.0 / lifted, vec[~ok])
+    return out.reshape(scaled.shape)
 
 
 def central_jacobian(fn, theta, steps) -> np.ndarray:

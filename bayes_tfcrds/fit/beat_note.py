@@ -69,6 +69,13 @@ MODE_DCHI2 = 50.0  # chi2 above the best beyond which a local optimum holds no p
 MAX_MODES = 6  # distinct optima kept (best included)
 MAX_POLISHED = 12  # coarse solutions polished (the starts mostly fall into a few basins)
 
+#: smallest eigenvalue, relative to the largest, kept in an optimum's equilibrated Fisher matrix.
+#: Eigenvalues of an explicit J'J are exact only to ~n eps (1e-15) of the largest, so a direction
+#: below 1e-12 (an sd a million times that of the best-determined one) is one the beat note does
+#: not determine (f_c and f_r both beyond the band); lifting it to the floor keeps the covariance
+#: positive definite, and conditionals on the other parameters exact to ~1e-4 (relative).
+FISHER_EIG_FLOOR = 1e-12
+
 
 def default_starts(f_hz, h_mag, variant):
     """Starting points covering the two shapes Eq. 2 takes in practice.
@@ -245,7 +252,7 @@ def _fit_at(params, scale, free, f, y, u, sig, weighted) -> TFFit:
     r = (model(theta) - y) / sig
     chi2 = float(r @ r)
     dof = len(f) - len(theta)
-    cov = covariance_from_fisher(jac.T @ jac)
+    cov = covariance_from_fisher(jac.T @ jac, eig_floor=FISHER_EIG_FLOOR)
     if not weighted:
         cov = cov * chi2 / max(dof, 1)
     return TFFit(

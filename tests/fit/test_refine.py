@@ -243,3 +243,45 @@ def test_ring_down_likelihood_through_the_basis_is_the_draw_by_draw_one(
     if max_rank is not None:
         spanned = refine_module._h_changes(ev.parts[0], ref.params, NAMES, draws)[2]
         assert not spanned.all()  # the fallback was exercised
+
+
+def test_a_beat_note_with_an_undetermined_direction_gives_the_refinement_its_exact_prior():
+    # Coverage campaign 18 (an f_c near 0.34 MHz on the A_r < 0 branch, resonance at 1.6 MHz):
+    # one combination of f_c and f_r is undetermined by the beat note, its Fisher matrix singular
+    # to rounding. The exact inverse then had variances of either sign (f_c: -1.6e21 Hz^2), the
+    # refinement's prior information on f_c came out negative and the budget's Cholesky failed.
+    # Independent check, the information form: f_c's precision given the other H parameters
+    # (scale marginalised) is a Schur complement of the Fisher matrix, whatever its rank.
+    from pathlib import Path
+
+    from bayes_tfcrds.core.linalg import central_jacobian
+    from bayes_tfcrds.fit.h_calibration import BEAT_FREE, beat_note_fit
+    from bayes_tfcrds.studies.coverage import settings_of, simulate_draw
+    from bayes_tfcrds.studies.spec import load_study
+
+    settings = settings_of(
+        load_study(Path(__file__).resolve().parents[2] / "studies" / "coverage.toml")
+    )
+    draw, g_sim, _ = settings.draw(18)
+    bundle, _ = simulate_draw(draw, g_sim, settings.campaign)
+    beat = beat_note_fit(next(iter(bundle.configs.values())), free=BEAT_FREE)
+    for fit in (beat, *beat.alternatives):
+        sd = np.sqrt(np.diag(fit.cov))
+        np.linalg.cholesky(fit.cov / np.outer(sd, sd))  # a covariance: positive definite
+        theta = np.append(fit.params.as_vector(fit.free), fit.scale)
+
+        def model(th, fit=fit):
+            return th[-1] * np.abs(
+                transfer_function(fit.f_hz, fit.params.with_vector(th[:-1], fit.free))
+            )
+
+        jac = central_jacobian(model, theta, 1e-6 * np.maximum(np.abs(theta), 1e-3))
+        jac = jac / (fit.h_mag_u if fit.weighted else np.sqrt(fit.chi2 / fit.dof))[:, None]
+        f = jac.T @ jac
+        marginal = f[:-1, :-1] - np.outer(f[:-1, -1], f[-1, :-1]) / f[-1, -1]
+        i = fit.free.index("f_c_hz")
+        # in the refinement's log f_c: information x f_c^2
+        expected = marginal[i, i] * fit.params.f_c_hz**2
+        _, info, _, _ = HPrior.from_beat(fit).conditional(("f_c_hz",), fit.params)
+        # the floor (1e-12) costs ~1e-4 through the covariance's cancellation: 1e-3 bounds it
+        assert info[0, 0] == pytest.approx(expected, rel=1e-3)
