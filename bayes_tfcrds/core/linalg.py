@@ -20,6 +20,7 @@ def covariance_from_fisher(fisher: np.ndarray, eig_floor: float | None = None) -
     direction gets a large, finite variance and the covariance stays positive definite, where
     the exact inverse of a matrix singular to rounding has variances of either sign (-1.6e21
     Hz^2 for f_c in coverage campaign 18). Every other matrix is inverted exactly, as without it.
+    A floor well above eps matters: conditionals taken through the result lose ~eps/eig_floor.
     """
     f = np.asarray(fisher, float)
     d = np.sqrt(np.abs(np.diagonal(f, axis1=-2, axis2=-1)))
@@ -36,7 +37,9 @@ def _floored_inverse(scaled: np.ndarray, eig_floor: float) -> np.ndarray:
     """Inverse of symmetric ``scaled`` (unit diagonal), eigenvalues below the floor lifted.
 
     Per matrix of a batch: those whose eigenvalues all clear ``eig_floor`` times their largest
-    are inverted exactly; one with no positive eigenvalue (nothing determined) raises.
+    are inverted exactly. One with no positive eigenvalue (nothing determined), or with an
+    eigenvalue below -``eig_floor`` times its largest (not a Fisher matrix: rounding leaves
+    J'J's eigenvalues within ~n eps of zero), raises.
     """
     n = scaled.shape[-1]
     flat = scaled.reshape(-1, n, n)
@@ -44,6 +47,8 @@ def _floored_inverse(scaled: np.ndarray, eig_floor: float) -> np.ndarray:
     if not np.all(val[:, -1] > 0):
         raise np.linalg.LinAlgError("a Fisher matrix without a positive eigenvalue")
     floor = eig_floor * val[:, -1:]
+    if np.any(val < -floor):
+        raise np.linalg.LinAlgError("an indefinite Fisher matrix (an eigenvalue well below 0)")
     ok = np.all(val >= floor, axis=-1)
     out = np.empty_like(flat)
     out[ok] = np.linalg.inv(flat[ok])

@@ -70,11 +70,12 @@ MAX_MODES = 6  # distinct optima kept (best included)
 MAX_POLISHED = 12  # coarse solutions polished (the starts mostly fall into a few basins)
 
 #: smallest eigenvalue, relative to the largest, kept in an optimum's equilibrated Fisher matrix.
-#: Eigenvalues of an explicit J'J are exact only to ~n eps (1e-15) of the largest, so a direction
-#: below 1e-12 (an sd a million times that of the best-determined one) is one the beat note does
-#: not determine (f_c and f_r both beyond the band); lifting it to the floor keeps the covariance
-#: positive definite, and conditionals on the other parameters exact to ~1e-4 (relative).
-FISHER_EIG_FLOOR = 1e-12
+#: A direction below it (an sd 1e4 times that of the best-determined one) is one the beat note
+#: does not determine (part of Eq. 2 beyond the band, or two paths that nearly cancel); lifting
+#: it to the floor keeps the covariance positive definite. ~sqrt(eps): conditionals taken through
+#: the covariance (the refinement's prior) lose ~eps/floor = 1e-8 to its condition number
+#: (1e-4, up to 2e-2 at a floor of 1e-12), and the floor moves them by <= ~1e-8 itself.
+FISHER_EIG_FLOOR = 1e-8
 
 
 def default_starts(f_hz, h_mag, variant):

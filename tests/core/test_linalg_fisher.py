@@ -9,8 +9,7 @@ import numpy as np
 import pytest
 
 from bayes_tfcrds.core.linalg import covariance_from_fisher
-
-FLOOR = 1e-12
+from bayes_tfcrds.fit.beat_note import FISHER_EIG_FLOOR as FLOOR
 
 
 def _fisher(rng, scales, singular: bool):
@@ -49,10 +48,23 @@ def test_an_undetermined_direction_gets_a_large_positive_variance(seed):
     # the null direction (columns 0 and 2 together) has variance of order 1/floor in scaled units
     sd1 = 1 / np.sqrt(np.diag(f))
     assert cov[0, 0] / sd1[0] ** 2 > 1e-2 / FLOOR
-    # information form: each parameter's variance given the others is 1/F_ii (rank-free); the
-    # floor perturbs it by ~floor x 1e12 cancellation ~ 1e-4 at most (beat_note.FISHER_EIG_FLOOR)
+    # information form: each parameter's variance given the others is 1/F_ii (rank-free). The
+    # covariance's condition number (1/floor) costs ~eps/floor = 1e-8 through the cancellation
+    # (worst 1e-6 over 3000 such matrices) and the floor itself ~1e-8: 1e-5 bounds both
     for i in range(len(SCALES)):
-        assert _conditional_variance(cov, i) == pytest.approx(1 / f[i, i], rel=1e-3)
+        assert _conditional_variance(cov, i) == pytest.approx(1 / f[i, i], rel=1e-5)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_undetermined_direction_is_the_null_vector(seed):
+    # columns 0 and 2 of J are dependent: J (a e0 + b e2) = 0 with a/b = 2.5 s0/s2 (natural units)
+    f = _fisher(np.random.default_rng(seed), SCALES, singular=True)
+    cov = covariance_from_fisher(f, eig_floor=FLOOR)
+    null = np.zeros(len(SCALES))
+    null[0], null[2] = 2.5 * SCALES[0] / SCALES[2], 1.0
+    val, vec = np.linalg.eigh(cov)
+    top = vec[:, -1]
+    assert abs(top @ null) / np.linalg.norm(null) == pytest.approx(1.0, abs=1e-6)
 
 
 def test_a_batch_floors_only_its_undetermined_members():
@@ -65,6 +77,10 @@ def test_a_batch_floors_only_its_undetermined_members():
     assert np.all(np.diag(out[1]) > 0)
 
 
-def test_nothing_determined_raises():
+def test_nothing_determined_or_an_indefinite_matrix_raises():
     with pytest.raises(np.linalg.LinAlgError):
         covariance_from_fisher(np.zeros((3, 3)), eig_floor=FLOOR)
+    # no J'J has an eigenvalue of -0.5 x its largest: an error upstream, not a direction to lift
+    indefinite = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -0.5]])
+    with pytest.raises(np.linalg.LinAlgError):
+        covariance_from_fisher(indefinite, eig_floor=FLOOR)
