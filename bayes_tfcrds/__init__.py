@@ -23,6 +23,7 @@ The main job in Python (the README's "Python" section runs it in a notebook)::
     config = bundle.configs["D2"]
     calibration = bt.calibrate(config)                    # H: beat note, refined on ring-downs
     fits = bt.fit_config(config, [4e-6], calibration=calibration)       # every decay time
+    fits, h = bt.fit_decay_times(config, [4e-6], calibration, np.random.default_rng(0))  # + u_H
     line = bt.analyse_line(bundle, config, t_cut_s=4e-6, calibration=calibration)
     budget = bt.run_budget(bundle, config, bt.BudgetOptions(), np.random.default_rng(0))
     found = bt.discover(bundle, "D2")
@@ -62,6 +63,7 @@ _API = {
     "analyse_line": "bayes_tfcrds.fit.line_analysis",
     "LineAnalysis": "bayes_tfcrds.fit.line_analysis",
     "Quantity": "bayes_tfcrds.core.quantity",
+    "fit_decay_times": "bayes_tfcrds.uncertainty.decay_times",
     "BudgetOptions": "bayes_tfcrds.uncertainty.line_budget",
     "BudgetResult": "bayes_tfcrds.uncertainty.line_budget",
     "run_budget": "bayes_tfcrds.uncertainty.line_budget",
@@ -94,6 +96,7 @@ __all__ = [
     "analyse_line",
     "LineAnalysis",
     "Quantity",
+    "fit_decay_times",
     "BudgetOptions",
     "BudgetResult",
     "run_budget",

@@ -151,19 +151,38 @@ def cmd_validate(args) -> int:
     return main_validate(args.file)
 
 
+def _decay_times(config, cal, args):
+    """``fit``'s TF-CRDS table: at the centre of H's posterior with u_H(tau), or (said) without.
+
+    When H's posterior cannot be drawn or fails its gates, the table keeps the calibration's H
+    and a NaN tau_u_s: its total is not known. Returns (fits, the H they used, the H draws or
+    None).
+    """
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.fit.ringdown import fit_ringdowns
+    from bayes_tfcrds.uncertainty.decay_times import h_part_of_tau_u, laplace_h_draws
+
+    try:
+        h = laplace_h_draws(config, cal, np.random.default_rng(args.seed), args.window)
+    except (AnalysisError, np.linalg.LinAlgError) as exc:
+        _say(
+            f"warning: no posterior of H to propagate into tau ({exc}); tau is fitted at the "
+            "calibration's H, tau_u_s is NaN and tau_u_noise_s the fit's own u(tau) given H"
+        )
+        fits = fit_ringdowns(config.ringdowns, args.tcut, "tf-crds", cal.params, args.window)
+        return fits, cal.params, None
+    fits = fit_ringdowns(config.ringdowns, args.tcut, "tf-crds", h.centre, args.window)
+    return fits.with_h_uncertainty(h_part_of_tau_u(config, fits, h)), h.centre, h
+
+
 def cmd_fit(args) -> int:
-    from bayes_tfcrds.fit.h_calibration import (
-        AnalysisError,
-        account_for_noise_colour,
-        calibrate,
-        fit_config,
-    )
+    from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
     from bayes_tfcrds.fit.line_analysis import check_t_cuts
     from bayes_tfcrds.fit.refine import tension_lines
+    from bayes_tfcrds.fit.ringdown import fit_ringdowns
 
     bundle = _load(args.file)
     config = _config(bundle, args.config)
-    cal = None
     try:
         check_t_cuts(config, args.tcut)
         config, noise, beat = account_for_noise_colour(config, args.window)
@@ -176,17 +195,27 @@ def cmd_fit(args) -> int:
                 free=args.refine,
                 beat=beat,
             )
-            p = cal.params
-            _say(
-                f"# H: f_c={p.f_c_hz:.6g} Hz a_r={p.a_r:.6g} f_r={p.f_r_hz:.6g} Hz "
-                f"gamma_r={p.gamma_r:.4g} n_r={p.n_r:.3g} ({args.h})"
-            )
             if cal.refined is not None:
                 for line in tension_lines(cal.refined):
                     _say(f"# {line}")
-        fits = fit_config(
-            config, args.tcut, method=args.method, window=args.window, calibration=cal
-        )
+            fits, p, h = _decay_times(config, cal, args)
+            asked = tuple(cal.refined.free) if cal.refined is not None else ()
+            if h is not None and h.refined != asked:
+                _say(
+                    f"# the ring-downs overrule the beat note with {', '.join(asked)} refined: "
+                    f"H's posterior refines {', '.join(h.refined)}"
+                )
+            _say(
+                f"# H: f_c={p.f_c_hz:.6g} Hz a_r={p.a_r:.6g} f_r={p.f_r_hz:.6g} Hz "
+                f"gamma_r={p.gamma_r:.4g} n_r={p.n_r:.3g} ({args.h}"
+                + ("" if h is None else ": the centre of its posterior, tau is fitted there")
+                + ")"
+            )
+            if h is not None and np.isfinite(fits.tau_u_h_s).any():
+                share = np.nanmedian(fits.tau_u_h_s / fits.tau_u_s)
+                _say(f"# u(tau): H part / noise part, median {share:.2f} (tau_u_s: in quadrature)")
+        else:
+            fits = fit_ringdowns(config.ringdowns, args.tcut, "crds", window=args.window)
     except (AnalysisError, ValueError) as exc:
         return _fail(exc, 1)
     atomic_write_text(Path(args.output), fits.to_csv())

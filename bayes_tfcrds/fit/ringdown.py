@@ -483,11 +483,20 @@ def _rational_chain(tf: TFParams):
         return None
 
 
+#: columns of the decay-time table (``RingdownFits.to_csv``, ``bayes-tfcrds fit``)
+CSV_COLUMNS = (
+    "nu_hz", "t_cut_s", "tau_s", "tau_u_s", "tau_u_noise_s", "tau_u_h_s", "chi2_red", "status",
+)  # fmt: skip
+
+
 @dataclass(frozen=True)
 class RingdownFits:
     """Fits of every spectral point at every t_cut: arrays shaped (m points, c t_cuts).
 
     Transients flagged as clipped are not fitted: their entries are NaN and ``clipped`` is set.
+    ``tau_u_s`` is the fit's own u(tau) (ring-down noise, given H), the weight of a line fit;
+    ``tau_u_h_s`` the part the uncertainty of H adds (fully correlated between points), when
+    computed; :attr:`tau_u_total_s` both, which the CSV and ``to_dict`` call ``tau_u``.
     """
 
     nu_hz: np.ndarray
@@ -511,6 +520,29 @@ class RingdownFits:
     # what the fits were made of, for a look at one transient (:meth:`trace`, :meth:`plot`)
     data: object = field(default=None, repr=False, compare=False)  # the RingdownData fitted
     tf: TFParams | None = None  # H of a tf-crds fit
+    # u(tau) from the uncertainty of H (s), points x t_cuts, when computed
+    # (:func:`bayes_tfcrds.uncertainty.decay_times.h_part_of_tau_u`); tau_u_s is the noise's
+    tau_u_h_s: np.ndarray | None = None
+
+    def with_h_uncertainty(self, tau_u_h_s) -> RingdownFits:
+        """These fits with the H part of u(tau) (s, shaped like tau_s): the CSV's total u."""
+        u_h = np.asarray(tau_u_h_s, float)
+        if u_h.shape != np.shape(self.tau_s):
+            raise ValueError(f"u_H(tau) shaped {u_h.shape}, the fits {np.shape(self.tau_s)}")
+        return replace(self, tau_u_h_s=u_h)
+
+    @property
+    def tau_u_total_s(self) -> np.ndarray:
+        """Standard uncertainty of tau (s): noise and H in quadrature.
+
+        Plain CRDS has no H in its model: its H part is 0 (not modelled; the chain's bias on its
+        tau, up to 16 %, is in no u). A TF-CRDS fit whose H part was not computed has NaN.
+        """
+        if self.tau_u_h_s is not None:
+            u_h = self.tau_u_h_s
+        else:
+            u_h = np.where(self.method == "tf-crds", np.nan, 0.0)
+        return np.hypot(self.tau_u_s, u_h)
 
     def converged_only(self) -> RingdownFits:
         """These fits with the decay times of fits that did not converge set to NaN (left out).
@@ -523,6 +555,7 @@ class RingdownFits:
             self,
             tau_s=np.where(bad, np.nan, self.tau_s),
             tau_u_s=np.where(bad, np.nan, self.tau_u_s),
+            tau_u_h_s=None if self.tau_u_h_s is None else np.where(bad, np.nan, self.tau_u_h_s),
             unconverged=bad,
         )
 
@@ -623,15 +656,31 @@ class RingdownFits:
     def to_csv(self) -> str:
         """The fit table as CSV text (``bayes-tfcrds fit``).
 
-        nu_hz, t_cut_s, tau_s, tau_u_s, chi2_red, status; SI units.
+        nu_hz, t_cut_s, tau_s, tau_u_s, tau_u_noise_s, tau_u_h_s, chi2_red, status; SI units.
+        tau_u_s is the standard uncertainty of tau (:attr:`tau_u_total_s`): the noise part
+        tau_u_noise_s (the fit's own, given H; the attribute ``tau_u_s``) and the H part
+        tau_u_h_s (fully correlated between points) in quadrature; NaN where the H part was not
+        computed for a TF-CRDS fit, 0 for plain CRDS (H not modelled).
         """
+        total = self.tau_u_total_s
+        u_h = self.tau_u_h_s if self.tau_u_h_s is not None else np.sqrt(total**2 - self.tau_u_s**2)
         buf = io.StringIO()
         w = csv.writer(buf)
-        w.writerow(["nu_hz", "t_cut_s", "tau_s", "tau_u_s", "chi2_red", "status"])
-        for nu, tc, tau, tau_u, chi2r, status in self.rows():
-            w.writerow(
-                [f"{nu:.3f}", f"{tc:.6e}", f"{tau:.10e}", f"{tau_u:.4e}", f"{chi2r:.5f}", status]
-            )
+        w.writerow(CSV_COLUMNS)
+        for i, nu in enumerate(self.nu_hz):
+            for j, tc in enumerate(self.t_cut_s):
+                w.writerow(
+                    [
+                        f"{nu:.3f}",
+                        f"{tc:.6e}",
+                        f"{self.tau_s[i, j]:.10e}",
+                        f"{total[i, j]:.4e}",
+                        f"{self.tau_u_s[i, j]:.4e}",
+                        f"{u_h[i, j]:.4e}",
+                        f"{self.chi2_red[i, j]:.5f}",
+                        self.status(i, j),
+                    ]
+                )
         return buf.getvalue()
 
 
@@ -646,20 +695,46 @@ def _per_fit_arrays(fits) -> dict:
     }
 
 
+#: chi2_red above which a converged TF-CRDS fit is suspected of a wrong optimum and fitted again
+#: from the record's best decay time at another t_cut. A right one has chi2_red ~ 1 (sd
+#: sqrt(2/n) ~ 0.01 on 10^4 samples; below 1 under coloured noise, weighted with kappa); a wrong
+#: one behind a strong slow tail was 5.2 (tau 6.9 us for 3.7 us, line centre of a zoo chain with
+#: f_c 10.6 kHz and tail weight 0.31, t_cut 8 us, at the chain's H).
+CHI2_SUSPECT = 1.5
+
+
 def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) -> None:
-    """Fit again, in place, the TF-CRDS fits that did not converge, from the record's decay time.
+    """Fit again, in place, TF-CRDS fits that did not converge or sit in a wrong optimum.
 
     A TF-CRDS fit starts from the plain-exponential fit of the same truncated transient; at a late
     t_cut behind a slow chain (a resonance of tens of kHz) that start can lie where the profiled
-    chi2 falls towards tau -> 0, and the fit walks there. The record's own decay time, converged
-    at another t_cut (their median), is the right start: TF-CRDS decay times do not depend on
-    t_cut. A refit that does not converge either leaves the entry as it was (unconverged).
+    chi2 falls towards tau -> 0, and the fit walks there, or in another local minimum of chi2 (a
+    converged fit with chi2_red > :data:`CHI2_SUSPECT`). The record's own decay time, converged
+    at another t_cut, is the right start: TF-CRDS decay times do not depend on t_cut. An
+    unconverged fit takes the median of the record's converged ones and is replaced when the
+    refit converges; a suspect one takes the decay time of the record's best fit (lowest
+    chi2_red) and is replaced only when the refit converges with a lower chi2 (same samples, same
+    model: the better optimum).
     """
+    have = conv & np.isfinite(out["tau"])
     failed = ~conv & np.isfinite(out["tau"]) & conv.any(axis=1, keepdims=True)
-    if not failed.any():
+    suspect = have & (out["chi2r"] > CHI2_SUSPECT) & (have.sum(axis=1, keepdims=True) > 1)
+    if not (failed.any() or suspect.any()):
         return
-    i, j = np.nonzero(failed)
-    start = np.array([np.median(out["tau"][r][conv[r]]) for r in i])
+    i, j = np.nonzero(failed | suspect)
+    chi2 = np.where(have, out["chi2r"], np.inf)
+    start = np.array(
+        [
+            out["tau"][r, np.argmin(chi2[r])]
+            if suspect[r, k]
+            else np.median(out["tau"][r][conv[r]])
+            for r, k in zip(i, j)
+        ]
+    )
+    keep = ~suspect[i, j] | ~np.isclose(start, out["tau"][i, j], rtol=1e-3)
+    i, j, start = i[keep], j[keep], start[keep]
+    if not i.size:
+        return
     again = fit_transients(
         ringdowns.time_s,
         ringdowns.signal_v,
@@ -673,7 +748,7 @@ def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) ->
         tau_start_s=start,
         warm_start=True,
     )
-    ok = again.converged
+    ok = again.converged & (~suspect[i, j] | (again.chi2_red < out["chi2r"][i, j]))
     for key, arr in _per_fit_arrays(again).items():
         out[key][i[ok], j[ok]] = arr[ok]
     conv[i[ok], j[ok]] = True

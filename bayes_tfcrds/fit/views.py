@@ -114,8 +114,13 @@ def ringdowns_html(fits) -> str:
 
 
 def ringdowns_dict(fits) -> dict:
-    """Every fit as JSON: arrays (points x t_cuts) with their units, NaN as null."""
+    """Every fit as JSON: arrays (points x t_cuts) with their units, NaN as null.
+
+    ``tau_u`` is the standard uncertainty of tau, its noise and H parts in quadrature as in the
+    CSV (:meth:`~bayes_tfcrds.fit.ringdown.RingdownFits.to_csv`); ``tau_u_noise`` the fit's own.
+    """
     m, c = fits.tau_s.shape
+    u_h = np.sqrt(fits.tau_u_total_s**2 - fits.tau_u_s**2)
     return {
         "method": fits.method,
         "window": fits.window,
@@ -123,7 +128,9 @@ def ringdowns_dict(fits) -> dict:
         "nu": {"values": _json_array(fits.nu_hz), "unit": "Hz"},
         "t_cut": {"values": _json_array(fits.t_cut_s), "unit": "s"},
         "tau": {"values": _json_array(fits.tau_s), "unit": "s"},
-        "tau_u": {"values": _json_array(fits.tau_u_s), "unit": "s"},
+        "tau_u": {"values": _json_array(fits.tau_u_total_s), "unit": "s"},
+        "tau_u_noise": {"values": _json_array(fits.tau_u_s), "unit": "s"},
+        "tau_u_h": {"values": _json_array(u_h), "unit": "s"},
         "amplitude": {"values": _json_array(fits.amplitude_v), "unit": "V"},
         "offset": {"values": _json_array(fits.offset_v), "unit": "V"},
         "chi2_red": {"values": _json_array(fits.chi2_red), "unit": "1"},

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bayes_tfcrds.cli import main
+from bayes_tfcrds.fit.ringdown import CSV_COLUMNS
 from bayes_tfcrds.studies.spec import StudyError, load_study
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -84,8 +85,14 @@ def test_fit_writes_one_row_per_point_and_t_cut(campaign, tmp_path):
 
     m = load_bundle(campaign).configs["D4"].ringdowns.n_points  # ~21 unique cavity modes
     assert len(rows) == m * 3 and m >= 15
-    assert {"nu_hz", "t_cut_s", "tau_s", "tau_u_s", "chi2_red"} <= set(rows[0])
+    assert list(rows[0]) == list(CSV_COLUMNS)
     tau = np.array([float(r["tau_s"]) for r in rows])
+    u = {
+        k: np.array([float(r[k]) for r in rows]) for k in ("tau_u_s", "tau_u_noise_s", "tau_u_h_s")
+    }
+    # the total is the noise and H parts in quadrature (to the CSV's 5 digits), and H has a part
+    assert np.allclose(u["tau_u_s"], np.hypot(u["tau_u_noise_s"], u["tau_u_h_s"]), rtol=1e-3)
+    assert np.all(u["tau_u_h_s"] > 0)
     assert np.all((tau > 3e-6) & (tau < 40e-6))
     assert np.median([float(r["chi2_red"]) for r in rows]) < 1.2
 

@@ -20,7 +20,7 @@ def _fit(path, out, capsys):
     err = capsys.readouterr().err
     with open(out) as fh:
         rows = list(csv.DictReader(fh))
-    return err, np.array([float(r["tau_u_s"]) for r in rows])
+    return err, np.array([float(r["tau_u_noise_s"]) for r in rows])
 
 
 def test_fit_flags_coloured_noise_and_widens_u_tau(tmp_path, capsys):

@@ -8,6 +8,7 @@ import pytest
 
 import bayes_tfcrds.fit.h_calibration as hc
 import bayes_tfcrds.fit.ringdown as rdmod
+import bayes_tfcrds.uncertainty.decay_times as decay_times
 
 # imported before any patch: these bind refine_on_records by name when first imported, so a
 # first import inside `refinement_fails` would keep the unconverged stand-in for every later
@@ -68,6 +69,8 @@ def test_fit_reports_unconverged_rows_and_fails_when_none_converged(
         return replace(fits, converged=np.zeros_like(fits.converged))
 
     monkeypatch.setattr(hc, "fit_ringdowns", none_converge)
+    monkeypatch.setattr(rdmod, "fit_ringdowns", none_converge)  # fit's own calls (cli, and
+    monkeypatch.setattr(decay_times, "fit_ringdowns", none_converge)  # its table of decay times)
     out = tmp_path / "fit.csv"
     args = ["fit", str(bundle_path), "--config", "D2", "--transfer-function", "beat"]
     assert main([*args, "-o", str(out)]) == 3
