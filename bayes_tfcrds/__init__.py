@@ -24,7 +24,8 @@ The main job in Python (the README's "Python" section runs it in a notebook)::
     calibration = bt.calibrate(config)                    # H: beat note, refined on ring-downs
     fits = bt.fit_config(config, [4e-6], calibration=calibration)       # every decay time
     fits, h = bt.fit_decay_times(config, [4e-6], calibration, np.random.default_rng(0))  # + u_H
-    line = bt.analyse_line(bundle, config, t_cut_s=4e-6, calibration=calibration)
+    line = bt.analyse_line(bundle, config, t_cut_s=4e-6, calibration=calibration)  # at its H
+    line, h = bt.analyse_line_with_h(bundle, config, calibration, np.random.default_rng(0))  # + u_H
     budget = bt.run_budget(bundle, config, bt.BudgetOptions(), np.random.default_rng(0))
     found = bt.discover(bundle, "D2")
 
@@ -64,6 +65,7 @@ _API = {
     "LineAnalysis": "bayes_tfcrds.fit.line_analysis",
     "Quantity": "bayes_tfcrds.core.quantity",
     "fit_decay_times": "bayes_tfcrds.uncertainty.decay_times",
+    "analyse_line_with_h": "bayes_tfcrds.uncertainty.line_area",
     "BudgetOptions": "bayes_tfcrds.uncertainty.line_budget",
     "BudgetResult": "bayes_tfcrds.uncertainty.line_budget",
     "run_budget": "bayes_tfcrds.uncertainty.line_budget",
@@ -97,6 +99,7 @@ __all__ = [
     "LineAnalysis",
     "Quantity",
     "fit_decay_times",
+    "analyse_line_with_h",
     "BudgetOptions",
     "BudgetResult",
     "run_budget",
@@ -135,5 +138,7 @@ if TYPE_CHECKING:  # pragma: no cover - for type checkers and IDEs only
     from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
     from bayes_tfcrds.studies.demo import run_demo
     from bayes_tfcrds.studies.registry import run_study
+    from bayes_tfcrds.uncertainty.decay_times import fit_decay_times
+    from bayes_tfcrds.uncertainty.line_area import analyse_line_with_h
     from bayes_tfcrds.uncertainty.line_budget import BudgetOptions, BudgetResult, run_budget
     from bayes_tfcrds.uncertainty.outputs import write_outputs

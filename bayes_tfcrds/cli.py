@@ -158,21 +158,33 @@ def _decay_times(config, cal, args):
     and a NaN tau_u_s: its total is not known. Returns (fits, the H they used, the H draws or
     None).
     """
-    from bayes_tfcrds.fit.h_calibration import AnalysisError
     from bayes_tfcrds.fit.ringdown import fit_ringdowns
-    from bayes_tfcrds.uncertainty.decay_times import h_part_of_tau_u, laplace_h_draws
+    from bayes_tfcrds.uncertainty.decay_times import fit_decay_times
 
-    try:
-        h = laplace_h_draws(config, cal, np.random.default_rng(args.seed), args.window)
-    except (AnalysisError, np.linalg.LinAlgError) as exc:
-        _say(
-            f"warning: no posterior of H to propagate into tau ({exc}); tau is fitted at the "
-            "calibration's H, tau_u_s is NaN and tau_u_noise_s the fit's own u(tau) given H"
-        )
+    h = _h_draws_or_warn(
+        config, cal, args, "tau is fitted at the calibration's H, tau_u_s is NaN and "
+        "tau_u_noise_s the fit's own u(tau) given H",
+    )  # fmt: skip
+    if h is None:
         fits = fit_ringdowns(config.ringdowns, args.tcut, "tf-crds", cal.params, args.window)
         return fits, cal.params, None
-    fits = fit_ringdowns(config.ringdowns, args.tcut, "tf-crds", h.centre, args.window)
-    return fits.with_h_uncertainty(h_part_of_tau_u(config, fits, h)), h.centre, h
+    fits, _ = fit_decay_times(config, args.tcut, cal, None, args.window, h=h)
+    return fits, h.centre, h
+
+
+def _h_draws_or_warn(config, cal, args, instead: str):
+    """H's posterior draws (``--seed``), or None with a warning that says what is done ``instead``.
+
+    The posterior fails when the refinement does not converge or fails the budget's gates.
+    """
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.uncertainty.decay_times import laplace_h_draws
+
+    try:
+        return laplace_h_draws(config, cal, np.random.default_rng(args.seed), args.window)
+    except (AnalysisError, np.linalg.LinAlgError) as exc:
+        _say(f"warning: no posterior of H to propagate ({exc}); {instead}")
+        return None
 
 
 def cmd_fit(args) -> int:
@@ -287,7 +299,8 @@ def cmd_simulate(args) -> int:
 def cmd_linefit(args) -> int:
     import json
 
-    from bayes_tfcrds.fit.line_analysis import LineFitError, analyse_line
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.fit.line_analysis import LineFitError
 
     if (args.file is None) == (args.spectrum is None):
         raise Refused("give a bundle FILE or --spectrum LAB_DIR (one of them)", 2)
@@ -296,17 +309,9 @@ def cmd_linefit(args) -> int:
             result, record = _spectrum_line(args)
         else:
             bundle = _load(args.file)
-            result = analyse_line(
-                bundle,
-                _config(bundle, args.config),
-                method=args.method,
-                window=args.window,
-                t_cut_s=args.tcut[0],
-                profile_name=args.profile,
-                physical_bounds=args.shape_bounds == "physical",
-            )
+            result = _bundle_line(bundle, _config(bundle, args.config), args)
             record = result.to_dict()
-    except (LineFitError, ValueError) as exc:
+    except (LineFitError, AnalysisError, ValueError, np.linalg.LinAlgError) as exc:
         return _fail(exc, 1)
     atomic_write_text(Path(args.output), json.dumps(record, indent=2) + "\n")
     for line in _linefit_warnings(result, args.tcut[0]):
@@ -321,6 +326,44 @@ def cmd_linefit(args) -> int:
         )
     )
     return 0
+
+
+def _bundle_line(bundle, config, args):
+    """linefit of a bundle; TF-CRDS at the centre of H's posterior with H's part of u(A).
+
+    When H's posterior cannot be drawn or fails its gates, the line is fitted at the
+    calibration's H and u(A) is the fit's alone (said, and labelled ``fit`` in the JSON).
+    """
+    from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
+    from bayes_tfcrds.fit.line_analysis import analyse_line, check_t_cuts
+    from bayes_tfcrds.uncertainty.line_area import analyse_line_with_h
+
+    options = dict(
+        window=args.window,
+        profile_name=args.profile,
+        physical_bounds=args.shape_bounds == "physical",
+    )
+    check_t_cuts(config, args.tcut)
+    config, noise, beat = account_for_noise_colour(config, args.window)
+    if args.method != "tf-crds":
+        return analyse_line(bundle, config, "crds", t_cut_s=args.tcut[0], noise=noise, **options)
+    cal = calibrate(config, window=args.window, beat=beat)
+    h = _h_draws_or_warn(
+        config, cal, args, "A is fitted at the calibration's H and u(A) is the line fit's alone"
+    )
+    if h is None:
+        return analyse_line(
+            bundle, config, "tf-crds", t_cut_s=args.tcut[0], calibration=cal, noise=noise,
+            **options,
+        )  # fmt: skip
+    result, _ = analyse_line_with_h(
+        bundle, config, cal, None, args.tcut[0], h=h, noise=noise, **options
+    )
+    _say(
+        f"# H: the centre of its posterior; u(A): the line fit's {result.line_fit.line_area_u:.3g} "
+        f"and H's {result.line_area_u_h_si:.3g} Hz/m in quadrature"
+    )
+    return result
 
 
 def _spectrum_line(args):

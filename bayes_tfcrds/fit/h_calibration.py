@@ -442,6 +442,7 @@ def fit_config(
     window: str = "extinction",
     calibration: Calibration | None = None,
     keep_residuals: bool = False,
+    tf: TFParams | None = None,
 ) -> RingdownFits:
     """Fit every transient of ``config`` at every t_cut (s) with CRDS or TF-CRDS.
 
@@ -459,14 +460,17 @@ def fit_config(
         The H for tf-crds (made by :func:`calibrate` when not given).
     keep_residuals : bool
         Keep every residual (V); ``RingdownFits.plot`` refits one transient otherwise.
+    tf : TFParams, optional
+        The H for tf-crds instead of ``calibration.params`` (e.g. the centre of its posterior).
 
     Returns
     -------
     RingdownFits
         tau (s), u(tau), chi2_red and status per point and t_cut.
     """
-    tf = None
-    if method == "tf-crds":
+    if method != "tf-crds":
+        tf = None
+    elif tf is None:
         if calibration is None:
             calibration = calibrate(config, window=window)
         tf = calibration.params

@@ -6,7 +6,7 @@ units at that edge, each labelled.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -101,23 +101,26 @@ def check_t_cuts(config, t_cuts_s):
             )
 
 
-def intensity_entry(area_hz_per_m, u_hz_per_m, number_density_m3, temperature_k) -> dict:
+def intensity_entry(
+    area_hz_per_m, u_hz_per_m, number_density_m3, temperature_k, u_holds: str = "fit"
+) -> dict:
     """The JSON intensity of a line fit: S at the line data's T_ref (296 K), cm/molecule.
 
     S(T) = A/N at the sample's temperature_k (K), referred to T_ref through Q(T), E'' and
-    stimulated emission (LineData.intensity_ratio), as the budget reports it; fit u only.
+    stimulated emission (LineData.intensity_ratio), as the budget reports it. Its u is A's
+    (``u_holds``: ``fit``, or ``fit + H``); p, T and x are the budget's.
     Outside the partition-function table (70-1000 K) S(T_ref) is None and the entry says why.
     """
     line = load_line()
     s_t = float(intensity_to_cm_per_molecule(area_hz_per_m, number_density_m3))
     u_t = float(intensity_to_cm_per_molecule(u_hz_per_m, number_density_m3))
-    entry = {"unit": "cm/molecule", "t_ref_k": line.temperature_k}
+    entry = {"unit": "cm/molecule", "t_ref_k": line.temperature_k, "u_holds": u_holds}
     try:
         to_ref = 1.0 / float(line.intensity_ratio(temperature_k))
     except ValueError as exc:
-        entry.update(value=None, u_fit_only=None, note=str(exc))
+        entry.update(value=None, u=None, note=str(exc))
     else:
-        entry.update(value=s_t * to_ref, u_fit_only=u_t * to_ref)
+        entry.update(value=s_t * to_ref, u=u_t * to_ref)
     entry.update(sample_temperature_k=float(temperature_k), value_at_sample_temperature=s_t)
     return entry
 
@@ -157,13 +160,30 @@ class LineAnalysis:
     noise: object | None = None  # the NoiseDiagnosis of the ring-downs (fit.noise)
     input_note: str | None = None  # what the input was, when not ring-down records
     ringdown_fits: RingdownFits | None = field(default=None, repr=False)  # decay times behind it
+    h_params: object | None = None  # the H the decay times were fitted at (TFParams), tf-crds
+    line_area_u_h_si: float | None = None  # H's part of u(A) (Hz/m); None: not propagated
+
+    @property
+    def line_area_u_si(self) -> float:
+        """u(A) (Hz/m): the line fit's, and H's part in quadrature when it was propagated."""
+        u_h = 0.0 if self.line_area_u_h_si is None else self.line_area_u_h_si
+        return float(np.hypot(self.line_fit.line_area_u, u_h))
+
+    @property
+    def u_note(self) -> str:
+        """What u(A) holds: ``fit`` (decay-time noise) or ``fit + H`` (H's posterior too)."""
+        return "fit" if self.line_area_u_h_si is None else "fit + H"
+
+    def with_h_uncertainty(self, u_h_si: float) -> LineAnalysis:
+        """The analysis with H's part of u(A) (Hz/m) added (see ``uncertainty.line_area``)."""
+        return replace(self, line_area_u_h_si=float(u_h_si))
 
     @property
     def line_area(self) -> Quantity:
-        """A (cm^-2) with its fit uncertainty."""
+        """A (cm^-2) with its u (:attr:`u_note`: the fit's, and H's when propagated)."""
         return Quantity(
             float(line_area_to_cm2(self.line_fit.line_area)),
-            float(line_area_to_cm2(self.line_fit.line_area_u)),
+            float(line_area_to_cm2(self.line_area_u_si)),
             "cm^-2",
         )
 
@@ -181,13 +201,11 @@ class LineAnalysis:
 
     @property
     def ratio(self) -> Quantity | None:
-        """A/A_ref with its first-order uncertainty (fit uncertainties only), or None."""
+        """A/A_ref with its first-order u (A's as :attr:`line_area`, A_ref's fit u), or None."""
         ref = self.reference_fit
         if ref is None:
             return None
-        r, u = ratio(
-            self.line_fit.line_area, self.line_fit.line_area_u, ref.line_area, ref.line_area_u
-        )
+        r, u = ratio(self.line_fit.line_area, self.line_area_u_si, ref.line_area, ref.line_area_u)
         return Quantity(float(r), float(u), "")
 
     @property
@@ -231,8 +249,15 @@ class LineAnalysis:
             "window": self.window,
             "t_cut_s": None if self.t_cut_s is None else float(self.t_cut_s),
             "profile": self.profile,
-            "line_area": _area_entry(lf.line_area, lf.line_area_u),
-            "intensity": intensity_entry(lf.line_area, lf.line_area_u, n, self.temperature_k),
+            "line_area": dict(
+                _area_entry(lf.line_area, self.line_area_u_si),
+                u_holds=self.u_note,
+                u_fit_si=float(lf.line_area_u),
+                u_h_si=self.line_area_u_h_si,
+            ),
+            "intensity": intensity_entry(
+                lf.line_area, self.line_area_u_si, n, self.temperature_k, self.u_note
+            ),
             "parameters": {
                 name: {
                     "value": float(v),
@@ -260,7 +285,7 @@ class LineAnalysis:
         if self.input_note is not None:
             out["input"] = self.input_note
         if self.calibration is not None:
-            p = self.calibration.params
+            p = self.h_params if self.h_params is not None else self.calibration.params
             out["transfer_function"] = {
                 "f_c_hz": p.f_c_hz,
                 "a_r": p.a_r,
@@ -269,6 +294,7 @@ class LineAnalysis:
                 "n_r": p.n_r,
                 "variant": p.variant,
                 "refined": self.calibration.refined is not None,
+                "at": "calibration" if self.h_params is None else "posterior centre",
             }
         if self.noise is not None:
             out["noise"] = self.noise.to_dict()
@@ -293,6 +319,7 @@ def analyse_line(
     calibration=None,
     physical_bounds: bool = False,
     noise=None,
+    tf=None,
 ) -> LineAnalysis:
     """Fit decay times at ``t_cut_s`` (s), the line profile to 1/(c tau), and CMDS; compare.
 
@@ -321,6 +348,10 @@ def analyse_line(
         Keep Gamma2, nu_VC >= 0 in the CRDS line fit.
     noise : NoiseDiagnosis, optional
         The noise colour of ``config`` if already diagnosed.
+    tf : TFParams, optional
+        The H at which tf-crds fits the decay times (default ``calibration.params``);
+        :func:`~bayes_tfcrds.uncertainty.line_area.analyse_line_with_h` gives the centre of H's
+        posterior and adds H's part of u(A).
 
     Returns
     -------
@@ -337,7 +368,9 @@ def analyse_line(
             config, noise, beat = account_for_noise_colour(config, window)
         if method == "tf-crds" and calibration is None:
             calibration = calibrate(config, window=window, beat=beat)
-        fits = fit_config(config, [t_cut_s], method=method, window=window, calibration=calibration)
+        fits = fit_config(
+            config, [t_cut_s], method=method, window=window, calibration=calibration, tf=tf
+        )
     except AnalysisError as exc:
         raise LineFitError(str(exc)) from exc
     # a decay time whose fit did not converge is not a measurement: left out and counted
@@ -374,6 +407,7 @@ def analyse_line(
         calibration=calibration,
         noise=noise,
         ringdown_fits=fits,
+        h_params=tf if method == "tf-crds" else None,
     )
 
 

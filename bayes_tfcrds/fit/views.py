@@ -479,19 +479,20 @@ def plot_line_fit(lf, ax=None):
 def _line_analysis_rows(la) -> list:
     d = la.to_dict()
     rows = [
-        ["A", fmt(d["line_area"]["value"], d["line_area"]["u"]), "cm^-2", "fit u"],
+        ["A", fmt(d["line_area"]["value"], d["line_area"]["u"]), "cm^-2", f"{la.u_note} u"],
     ]
     if d["reference_area"] is not None:
         ref = d["reference_area"]
         rows.append(["A_ref (CMDS)", fmt(ref["value"], ref["u"]), "cm^-2", "fit u"])
-        rows.append(["A/A_ref", fmt(d["ratio"]["value"], d["ratio"]["u"]), "1", "fit u"])
+        rows.append(["A/A_ref", fmt(d["ratio"]["value"], d["ratio"]["u"]), "1", f"{la.u_note} u"])
     s = d["intensity"]
     rows.append(
         [
             f"S({s['t_ref_k']:g} K)",
-            fmt(s["value"], s["u_fit_only"]),
+            fmt(s["value"], s["u"]),
             s["unit"],
-            "fit u only (the budget adds p, T, H)",
+            f"{la.u_note} u only (the budget adds p, T, x"
+            + (", H)" if la.line_area_u_h_si is None else ")"),
         ]
     )
     rows.append(["chi2_red", fmt(la.chi2_red, digits=4), "1", "CRDS spectrum fit"])

@@ -3,7 +3,8 @@
 The letter reads its CRDS line fits as physical line shapes (Gamma2, nu_VC >= 0), and so does
 the demo: on the distorted D3/D4 spectra the free estimator would follow the distortion to
 nu_VC < 0 (the summary's last column names any shape parameter the bound holds at 0). TF-CRDS
-fits are the same either way: the bounds are not reached when the model is right.
+fits are the same either way: the bounds are not reached when the model is right. TF-CRDS is
+``linefit``'s: at the centre of H's posterior, its u with H's part.
 """
 
 from __future__ import annotations
@@ -17,10 +18,12 @@ import numpy as np
 
 from bayes_tfcrds.bundle.reader import load_bundle
 from bayes_tfcrds.bundle.writer import save_bundle
-from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
+from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
 from bayes_tfcrds.fit.line_analysis import LineAnalysis, analyse_line
 from bayes_tfcrds.output.files import atomic_write_text
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign, spectral_points
+from bayes_tfcrds.uncertainty.decay_times import laplace_h_draws
+from bayes_tfcrds.uncertainty.line_area import analyse_line_with_h
 
 PRESETS = ("letter-D1", "letter-D2", "letter-D3", "letter-D4")
 METHODS = ("crds", "tf-crds")
@@ -44,12 +47,20 @@ class DemoResult:
             "held at 0 |",
             "|---|---|---|---|---|---|---|---|",
         ]
+        fallback = False
         for r in self.analyses:
             held = ", ".join(r.shape_at_bound) or "-"
+            mark = "*" if r.method == "tf-crds" and r.line_area_u_h_si is None else ""
+            fallback |= bool(mark)
             lines.append(
                 f"| {r.configuration} | {r.method} | {r.t_cut_s * 1e6:g} | "
                 f"{r.line_area.value:.6e} | {100 * (r.ratio.value - 1):+.3f} | "
-                f"{100 * r.ratio.u:.3f} | {r.chi2_red:.2f} | {held} |"
+                f"{100 * r.ratio.u:.3f}{mark} | {r.chi2_red:.2f} | {held} |"
+            )
+        if fallback:
+            lines.append(
+                "\n\\* H's posterior failed its gates: fitted at the calibration's H, u without "
+                "H's part"
             )
         return lines
 
@@ -57,6 +68,15 @@ class DemoResult:
 def demo_campaign(quick: bool = False) -> Campaign:
     """The letter's campaign, or a smaller one (41 modes, 8192 samples, 20 averages) if quick."""
     return Campaign() if not quick else replace(Campaign(), n_points=41, n_samples=8192, n_avg=20)
+
+
+def _h_draws(cfg, cal, seeds, log):
+    """H's posterior draws for TF-CRDS (``linefit``'s), or None (logged: the calibration's H)."""
+    try:
+        return laplace_h_draws(cfg, cal, np.random.default_rng(seeds))
+    except (AnalysisError, np.linalg.LinAlgError) as exc:
+        log(f"  {cfg.name}: no posterior of H ({exc}): TF-CRDS at the calibration's H, fit u only")
+        return None
 
 
 def run_demo(
@@ -78,22 +98,19 @@ def run_demo(
     save_bundle(bundle, path, truth=truth)
     bundle = load_bundle(path)
     analyses = []
-    for name, raw in bundle.configs.items():
+    for k, (name, raw) in enumerate(bundle.configs.items()):
         cfg, noise, beat = account_for_noise_colour(raw)
         cal = calibrate(cfg, beat=beat)
+        h = _h_draws(cfg, cal, np.random.SeedSequence(seed, spawn_key=(1 + k,)), log)
         for method in METHODS:
             for tc in T_CUTS_S:
-                analyses.append(
-                    analyse_line(
-                        bundle,
-                        cfg,
-                        method=method,
-                        t_cut_s=tc,
-                        physical_bounds=True,
-                        calibration=cal if method == "tf-crds" else None,
-                        noise=noise,
-                    )
-                )
+                options = dict(t_cut_s=tc, physical_bounds=True, noise=noise)
+                if method == "tf-crds" and h is not None:
+                    la, _ = analyse_line_with_h(bundle, cfg, cal, None, h=h, **options)
+                else:
+                    tf_cal = cal if method == "tf-crds" else None
+                    la = analyse_line(bundle, cfg, method=method, calibration=tf_cal, **options)
+                analyses.append(la)
                 log(f"  {name} {method} t_cut {tc * 1e6:g} us done")
     result = DemoResult(tuple(analyses), path, out / "results.json", out / "summary.md")
     atomic_write_text(

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from bayes_tfcrds.output.plotting import (
@@ -24,28 +26,41 @@ LETTER_BIAS = {
 
 
 def _tcut_config(args):
-    bundle_path, name, methods, t_cuts, profile, window, physical = args
+    """One configuration's rows: A/A_ref for every method and t_cut.
+
+    TF-CRDS is the shipped ``linefit``: decay times at the centre of H's posterior, u(A/A_ref)
+    with H's part (drawn once per configuration from ``seeds``, a SeedSequence). When the
+    posterior fails its gates the row is fitted at the calibration's H, with the fit's u, and
+    says so (``h_at``).
+    """
+    bundle_path, name, methods, t_cuts, profile, window, physical, seeds = args
     from bayes_tfcrds.bundle.reader import load_bundle
-    from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
+    from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
     from bayes_tfcrds.fit.line_analysis import analyse_line
+    from bayes_tfcrds.uncertainty.decay_times import laplace_h_draws
+    from bayes_tfcrds.uncertainty.line_area import analyse_line_with_h
 
     bundle = load_bundle(bundle_path)
     cfg, noise, beat = account_for_noise_colour(bundle.configs[name], window)
-    cal = calibrate(cfg, window=window, beat=beat) if "tf-crds" in methods else None
+    options = dict(window=window, profile_name=profile, physical_bounds=physical, noise=noise)
+    h = cal = None
+    if "tf-crds" in methods:
+        cal = calibrate(cfg, window=window, beat=beat)
+        try:
+            h = laplace_h_draws(cfg, cal, np.random.default_rng(seeds), window)
+        except (AnalysisError, np.linalg.LinAlgError) as exc:  # said in the rows and the report
+            warnings.warn(
+                f"{name}: no posterior of H ({exc}); TF-CRDS at the calibration's H", stacklevel=2
+            )
+            h = None
     rows = []
     for m in methods:
         for tc in t_cuts:
-            r = analyse_line(
-                bundle,
-                cfg,
-                method=m,
-                window=window,
-                t_cut_s=tc,
-                profile_name=profile,
-                calibration=cal if m == "tf-crds" else None,
-                physical_bounds=physical,
-                noise=noise,
-            )
+            if m == "tf-crds" and h is not None:
+                r, _ = analyse_line_with_h(bundle, cfg, cal, None, tc, h=h, **options)
+            else:
+                tf_cal = cal if m == "tf-crds" else None
+                r = analyse_line(bundle, cfg, method=m, t_cut_s=tc, calibration=tf_cal, **options)
             rows.append(
                 {
                     "config": name,
@@ -53,7 +68,10 @@ def _tcut_config(args):
                     "t_cut_s": tc,
                     "ratio": r.ratio.value,
                     "ratio_u": r.ratio.u,
+                    "u_holds": r.u_note,
+                    "h_at": None if m == "crds" else ("calibration" if h is None else "centre"),
                     "area_si": float(r.line_fit.line_area),
+                    "area_u_si": r.line_area_u_si,
                     "ref_si": float(r.reference_fit.line_area),
                     "chi2_red": r.chi2_red,
                     "shape_at_bound": r.shape_at_bound,
@@ -226,8 +244,9 @@ def study_tcut(study, bundle, truth, rep, out, progress=False, pool=None):
             study.profile,
             window,
             study.shape_bounds == "physical",
+            np.random.SeedSequence(study.seed, spawn_key=(0, 1 + i)),
         )
-        for name in bundle.configs
+        for i, name in enumerate(bundle.configs)
     ]
     rows = [
         r

@@ -37,8 +37,11 @@ from bayes_tfcrds.simulate.campaign import Campaign, parse_effect, simulate_camp
 from bayes_tfcrds.studies.common import stored_record
 from bayes_tfcrds.studies.tcut import LETTER_BIAS, _tcut_config, _tcut_figure
 
-RECORD_VERSION = 1
-SEED_SCHEME = "SeedSequence(seed, spawn_key=(i,))"
+RECORD_VERSION = 2  # 2: TF-CRDS at the centre of H's posterior, u with H's part
+SEED_SCHEME = (
+    "SeedSequence(seed, spawn_key=(i,)); H's posterior draws of configuration k: "
+    "spawn_key=(i, 1 + k)"
+)
 # the bootstrap's own stream: a spawn key no seed index reaches (study.seeds <= 10000)
 BOOTSTRAP_KEY = 1_000_000
 N_BOOTSTRAP = 4000
@@ -95,7 +98,7 @@ def run_seed(settings: SeedSettings, index: int, folder: Path) -> dict:
     path = folder.parent / "campaign.h5" if index == 0 else folder / f"s{index:04d}.h5"
     save_bundle(bundle, path, truth=truth)
     rows = []
-    for name in bundle.configs:
+    for i, name in enumerate(bundle.configs):
         job = (
             str(path),
             name,
@@ -104,6 +107,7 @@ def run_seed(settings: SeedSettings, index: int, folder: Path) -> dict:
             settings.profile,
             settings.window,
             settings.physical,
+            np.random.SeedSequence(settings.seed, spawn_key=(index, 1 + i)),
         )
         rows.extend(_tcut_config(job))
     if index != 0:
@@ -223,6 +227,7 @@ class SeedSummary:
     cmds_sd: dict
     cmds_spread: np.ndarray
     stated_u: dict
+    at_calibration: dict  # TF-CRDS rows per config whose H posterior failed (calibration's H)
 
 
 def summarise_seeds(records, names, methods, rng: np.random.Generator) -> SeedSummary:
@@ -261,9 +266,19 @@ def summarise_seeds(records, names, methods, rng: np.random.Generator) -> SeedSu
         for n in names
         for m in methods
     }
+    at_calibration = {
+        n: sum(
+            r.get("h_at") == "calibration"
+            for rec in records
+            for r in rec["rows"]
+            if r["config"] == n
+        )
+        for n in names
+    }
     return SeedSummary(
-        tuple(names), tuple(methods), len(records), bias, factor, cmds_sd, spread, stated_u
-    )
+        tuple(names), tuple(methods), len(records), bias, factor, cmds_sd, spread, stated_u,
+        at_calibration,
+    )  # fmt: skip
 
 
 LETTER_FACTOR_MEANING = (
@@ -298,6 +313,7 @@ def summary_to_dict(s: SeedSummary) -> dict:
         }
         entry["cmds_a_ref_sd_over_seeds"] = s.cmds_sd[n]
         entry["stated_u_ratio_mean"] = {m: s.stated_u[(n, m)] for m in s.methods}
+        entry["tf_crds_rows_at_calibration_h"] = s.at_calibration[n]
         configs[n] = entry
     return {
         "n_seeds": s.n_seeds,
@@ -400,6 +416,7 @@ def bias_tables(rep, s: SeedSummary) -> None:
                     _pct(s.bias[(n, m, "cmds", "abs")]),
                     "-" if np.isnan(lb) else f"{lb:.2f}",
                     f"{100 * s.stated_u[(n, m)]:.3f}",
+                    f"{100 * s.bias[(n, m, 'truth', 'signed')].sd:.3f}",
                 ]
             )
     rep.add_table(
@@ -412,8 +429,24 @@ def bias_tables(rep, s: SeedSummary) -> None:
             "|A/A_ref - 1| (%)",
             "letter |A/A_ref - 1| (%)",
             "stated u(A/A_ref) (%)",
+            "sd over seeds of A/A_true - 1 (%)",
         ],
         rows,
+    )
+    rep.add_text(
+        "Stated u: the mean over seeds and t_cut of the u each analysis states for A/A_ref: the "
+        "line fits' for CRDS; for TF-CRDS the line fit's and that of H's posterior (A fitted at "
+        "its centre, as `linefit` does); the CMDS reference's fit in both. Beside it the sd over "
+        "seeds of the t_cut-averaged A/A_true - 1. For TF-CRDS, if its u is right, that sd is "
+        "about sqrt(stated u^2 - u(A_ref)^2) (u(A_ref)/A_ref = 0.015 %) or somewhat less "
+        "(averaging over t_cut removes part of the noise, not H's part); for CRDS the bias "
+        "dominates, and its u does not hold it."
+        + "".join(
+            f" {n}: {k} TF-CRDS rows had no posterior of H (fitted at the calibration's H, u "
+            "without H's part), in these means."
+            for n, k in s.at_calibration.items()
+            if k
+        )
     )
     if not s.factor:
         return

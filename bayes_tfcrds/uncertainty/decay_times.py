@@ -136,7 +136,7 @@ def h_part_of_tau_u(config, fits, h: HDraws) -> np.ndarray:
 
 def fit_decay_times(
     config, t_cuts_s, calibration, rng: np.random.Generator, window: str = "extinction",
-    n_draws: int = N_H_DRAWS,
+    n_draws: int = N_H_DRAWS, h: HDraws | None = None,
 ):  # fmt: skip
     """TF-CRDS decay times at the centre of H's posterior, with u(tau) whole (``fit``'s table).
 
@@ -144,9 +144,11 @@ def fit_decay_times(
     (:func:`~bayes_tfcrds.fit.h_calibration.account_for_noise_colour`; as read, the stated
     noise is taken as white), ``t_cuts_s`` (s),
     ``calibration`` from :func:`~bayes_tfcrds.fit.h_calibration.calibrate` (whose refined
-    parameters the posterior updates). Returns (RingdownFits with ``tau_u_h_s``, the
-    :class:`HDraws`). Raises as :func:`laplace_h_draws`.
+    parameters the posterior updates), ``h`` the draws when already made (``rng`` and ``n_draws``
+    are then unused). Returns (RingdownFits with ``tau_u_h_s``, the :class:`HDraws`). Raises as
+    :func:`laplace_h_draws`.
     """
-    h = laplace_h_draws(config, calibration, rng, window, n_draws)
+    if h is None:
+        h = laplace_h_draws(config, calibration, rng, window, n_draws)
     fits = fit_ringdowns(config.ringdowns, t_cuts_s, "tf-crds", tf=h.centre, window=window)
     return fits.with_h_uncertainty(h_part_of_tau_u(config, fits, h)), h

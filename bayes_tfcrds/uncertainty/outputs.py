@@ -775,6 +775,11 @@ def component_from_result(entry: dict, name: str, sensitivity: float, note: str 
     that unit. The importing budget then carries u and nu_eff on (GUM G.4), and its Monte Carlo
     can use ``entry["monte_carlo"]`` (y, u, interval) as the input's summary.
     """
+    if "u_holds" in entry:  # linefit.json: its u is the line fit's (and H's), not a u_c
+        raise ValueError(
+            f"the entry for {name!r} is a line fit's (its u holds: {entry['u_holds']}), not a "
+            "budget's combined u: import budget.json (bayes-tfcrds budget) instead"
+        )
     missing = [k for k in ("value", "u", "unit") if entry.get(k) is None]
     if missing:
         raise ValueError(

@@ -122,7 +122,7 @@ def test_fit_says_so_and_writes_no_total_u_when_h_posterior_fails(tmp_path, monk
 
     monkeypatch.setattr(decay_times, "laplace_h_draws", refuse)
     assert main(["fit", str(path), "--config", "D2", "--tcut", "4e-6", "-o", str(out)]) == 0
-    assert "no posterior of H to propagate into tau (the test refuses)" in capsys.readouterr().err
+    assert "no posterior of H to propagate (the test refuses)" in capsys.readouterr().err
     with open(out) as fh:
         rows = list(csv.DictReader(fh))
     assert all(r["tau_u_s"] == "nan" and r["tau_u_h_s"] == "nan" for r in rows)
