@@ -15,6 +15,7 @@ import contextlib
 import logging
 import os
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -283,6 +284,7 @@ def cmd_simulate(args) -> int:
         campaign = Campaign(
             n_points=args.points, n_samples=args.samples, noise=parse_noise(args.noise)
         )
+        campaign = _sample_conditions(campaign, args.temperature, args.pressure)
         rng = np.random.default_rng(args.seed)
         bundle, truth = simulate_campaign(presets, rng, campaign, effects)
     except ValueError as exc:
@@ -294,6 +296,24 @@ def cmd_simulate(args) -> int:
         f"{campaign.n_samples} samples, seed {args.seed}"
     )
     return 0
+
+
+def _sample_conditions(campaign, temperature_k=None, pressure_pa=None):
+    """``campaign`` with the gas at ``temperature_k`` (K) and ``pressure_pa`` (Pa) where given.
+
+    The simulator makes the line of those conditions (number density, S(T) from S(296 K),
+    widths, Doppler) and the bundle's /sample reports them. The pressure gauge's stated u keeps
+    the campaign's relative value (0.333 Pa at 666.6 Pa: a 0.05 % manometer) instead of its
+    absolute one; the temperature u (0.03 K) is absolute and stays. With neither given the
+    campaign is returned unchanged (the same bundle as before for the same seed).
+    """
+    changes = {}
+    if temperature_k is not None:
+        changes["temperature_k"] = temperature_k
+    if pressure_pa is not None:
+        rel_u = campaign.pressure_u_pa / campaign.pressure_pa
+        changes.update(pressure_pa=pressure_pa, pressure_u_pa=rel_u * pressure_pa)
+    return replace(campaign, **changes) if changes else campaign
 
 
 def cmd_linefit(args) -> int:
@@ -876,6 +896,39 @@ def _seed(text: str) -> int:
     return value
 
 
+#: gas temperatures ``simulate`` accepts, K: the partition-function table's range (S(T) from
+#: S(296 K) is never extrapolated)
+SIM_TEMPERATURE_K = (70.0, 1000.0)
+
+
+def _temperature_k(text: str) -> float:
+    """A sample temperature in K inside :data:`SIM_TEMPERATURE_K`."""
+    lo, hi = SIM_TEMPERATURE_K
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not lo <= value <= hi:  # nan fails both comparisons
+        raise argparse.ArgumentTypeError(
+            f"expected a temperature in kelvin in [{lo:g}, {hi:g}] (the partition-function "
+            f"table), got {text!r}"
+        )
+    return value
+
+
+def _pressure_pa(text: str) -> float:
+    """A sample pressure in Pa: finite and > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(
+            f"expected a pressure in pascal, finite and > 0, got {text!r}"
+        )
+    return value
+
+
 def _common(sp, seed=0, note=""):
     """Options every command has (``--seed``, ``--quiet``, ``--verbose``), help with defaults."""
     sp.formatter_class = _HelpWithDefaults
@@ -1038,6 +1091,22 @@ def _add_simulate(sub) -> None:
         "default span of +/- 10 GHz holds 99)",
     )
     sp.add_argument("--samples", type=int, default=Campaign.n_samples, help="samples per transient")
+    sp.add_argument(
+        "--temperature",
+        type=_temperature_k,
+        metavar="K",
+        help=f"gas temperature of the sample in kelvin, {SIM_TEMPERATURE_K[0]:g}-"
+        f"{SIM_TEMPERATURE_K[1]:g} K (default: the campaign's {Campaign.temperature_k:g} K); the "
+        "line's S(T) follows from S(296 K)",
+    )
+    sp.add_argument(
+        "--pressure",
+        type=_pressure_pa,
+        metavar="PA",
+        help=f"gas pressure of the sample in pascal, > 0 (default: the campaign's "
+        f"{Campaign.pressure_pa:g} Pa); the gauge's stated u stays "
+        f"{100 * Campaign.pressure_u_pa / Campaign.pressure_pa:.2f} %% of it",
+    )
     sp.add_argument(
         "--noise",
         default="white",

@@ -10,7 +10,23 @@ stated sd: white, Butterworth low-pass (order 2-6, 1-12 MHz), a resonant AR(2) (
 pole radius 0.8-0.97), white + Ornstein-Uhlenbeck (corner 10 kHz-1 MHz, 10-60 % of the
 variance), white + random walk (non-stationary) and differenced white noise (less power at low
 frequency than at high). Each is a time-domain recursion (scipy.signal.lfilter), not the
-simulator's FFT shaping. The analysis is the shipped one of ``bayes-tfcrds fit``
+simulator's FFT shaping.
+
+``--kinds`` (comma-separated) picks other noise kinds; campaign ``index`` gets
+``kinds[index % len(kinds)]``. The default is the six above in that order, which reproduces the
+previous campaigns exactly (same kind at the same index, same random streams). Four further
+kinds, also not the simulator's, can be chosen:
+
+- ``pink``: 1/f flicker of the detector / amplifier, FFT-shaped 1/f^alpha noise (alpha
+  0.7-1.5) making up 20-80 % of the variance, the rest white;
+- ``pickup``: an RF pickup line, a sinusoid (0.1-5 MHz, random phase per record) making up
+  10-50 % of the variance, plus white;
+- ``bandpass``: a resonant amplifier stage, white noise through ``scipy.signal.iirpeak``
+  (centre 0.2-5 MHz, Q 1-20) making up 20-80 % of the variance, plus white;
+- ``student``: heavy-tailed bursts, Student-t white noise (nu 3-8) scaled to unit variance.
+
+All kinds are normalised as the others: the record's per-sample sd is that of the white noise
+they replace. The analysis is the shipped one of ``bayes-tfcrds fit``
 (:func:`~bayes_tfcrds.fit.h_calibration.account_for_noise_colour`,
 :func:`~bayes_tfcrds.fit.h_calibration.calibrate`,
 :func:`~bayes_tfcrds.uncertainty.decay_times.fit_decay_times`; for A, ``linefit``'s
@@ -24,6 +40,7 @@ them). For comparison the same pulls at the letter's H (f_c refined, the rest at
 same total u) are shown.
 
 Usage:  python benchmarks/fit_tau_pulls.py --campaigns 60 --seed 11 --workers 2
+        python benchmarks/fit_tau_pulls.py --kinds pink,pickup,bandpass,student --campaigns 60
 """
 
 from __future__ import annotations
@@ -36,7 +53,9 @@ from dataclasses import replace
 import numpy as np
 from scipy import signal
 
-KINDS = ("white", "butterworth", "ar2", "ou", "random-walk", "differenced")
+KINDS = ("white", "butterworth", "ar2", "ou", "random-walk", "differenced")  # the default
+EXTRA_KINDS = ("pink", "pickup", "bandpass", "student")
+ALL_KINDS = KINDS + EXTRA_KINDS
 PRESETS = ("letter-D1", "letter-D2", "letter-D3", "letter-D4")
 T_CUTS_S = (2e-6, 4e-6, 8e-6)
 FS_HZ = 50e6  # the simulated digitizer's rate (20 ns)
@@ -57,11 +76,24 @@ def _shape(kind: str, rng) -> dict:
         return {"step": log_uniform(1e-3, 2e-2)}
     if kind == "differenced":
         return {"c": float(rng.uniform(0.3, 0.9))}
+    if kind == "pink":
+        return {"alpha": float(rng.uniform(0.7, 1.5)), "share": float(rng.uniform(0.2, 0.8))}
+    if kind == "pickup":
+        return {"f_hz": log_uniform(1e5, 5e6), "share": float(rng.uniform(0.1, 0.5))}
+    if kind == "bandpass":
+        return {
+            "f_hz": log_uniform(2e5, 5e6),
+            "q": float(rng.uniform(1.0, 20.0)),
+            "share": float(rng.uniform(0.2, 0.8)),
+        }
+    if kind == "student":
+        return {"nu": float(rng.uniform(3.0, 8.0))}
     return {}
 
 
 def noise(kind: str, par: dict, shape, rng) -> np.ndarray:
-    """Unit-variance noise of one shape (records x samples), by time-domain recursions."""
+    """Unit-variance noise of one shape (records x samples): time-domain recursions, except
+    ``pink`` (FFT-shaped), ``pickup`` (a sinusoid) and ``student`` (heavy-tailed white)."""
     m, k = shape
     w = rng.standard_normal((m, k + BURN))
     if kind == "butterworth":
@@ -79,6 +111,27 @@ def noise(kind: str, par: dict, shape, rng) -> np.ndarray:
         y = w + par["step"] * (walk - walk[:, BURN : BURN + 1])
     elif kind == "differenced":
         y = w - par["c"] * np.roll(w, 1, axis=-1)
+    elif kind == "pink":  # 1/f^alpha power: amplitude f^(-alpha/2), no DC
+        f = np.fft.rfftfreq(k + BURN, 1 / FS_HZ)
+        gain = np.zeros_like(f)
+        gain[1:] = (f[1:] / f[1]) ** (-par["alpha"] / 2)
+        spec = np.fft.rfft(rng.standard_normal(w.shape), axis=-1) * gain
+        pink = np.fft.irfft(spec, n=k + BURN, axis=-1)
+        pink /= np.sqrt(np.mean(pink**2))
+        y = np.sqrt(1 - par["share"]) * w + np.sqrt(par["share"]) * pink
+    elif kind == "pickup":  # unit-variance sinusoid, random phase per record
+        t = np.arange(k + BURN) / FS_HZ
+        phase = rng.uniform(0, 2 * np.pi, (m, 1))
+        line = np.sqrt(2) * np.sin(2 * np.pi * par["f_hz"] * t + phase)
+        y = np.sqrt(1 - par["share"]) * w + np.sqrt(par["share"]) * line
+    elif kind == "bandpass":
+        b, a = signal.iirpeak(par["f_hz"], par["q"], fs=FS_HZ)
+        peak = signal.lfilter(b, a, rng.standard_normal(w.shape), axis=-1)
+        peak /= np.sqrt(np.mean(peak[:, BURN:] ** 2))
+        y = np.sqrt(1 - par["share"]) * w + np.sqrt(par["share"]) * peak
+    elif kind == "student":  # sd of t_nu is sqrt(nu / (nu - 2))
+        nu = par["nu"]
+        y = rng.standard_t(nu, w.shape) * np.sqrt((nu - 2) / nu)
     else:
         y = w
     y = y[:, BURN:]
@@ -101,19 +154,20 @@ def one_campaign(args) -> dict:
     from bayes_tfcrds.uncertainty.decay_times import fit_decay_times, h_part_of_tau_u
     from bayes_tfcrds.uncertainty.line_area import analyse_line_with_h
 
-    index, seed = args
+    index, seed, kinds = args
     rng = np.random.default_rng([seed, index])
-    kind = KINDS[index % len(KINDS)]
+    kind = kinds[index % len(kinds)]
     par = _shape(kind, rng)
     campaign = Campaign(n_points=41, n_avg=20, adc_bits=24)
     # every noise kind meets every chain kind: the kind cycles with index, the chain with
-    # index // len(KINDS)
-    if (index // len(KINDS)) % 3 == 2:
+    # index // len(kinds)
+    cycle = (index // len(kinds)) % 3
+    if cycle == 2:
         chain = PRESETS[int(rng.integers(len(PRESETS)))]
         key, single_v = chain, PRESET_TABLE[chain].noise_v
         preset = chain
     else:
-        chain = ("tail", "pole")[(index // len(KINDS)) % 3]
+        chain = ("tail", "pole")[cycle]
         preset = ChainPreset("Z", "zoo", draw_chain(rng, chain))
         key, single_v = "Z", preset.noise_v
     # without the simulator's noise; the record's sd is the preset's, the noise is added below
@@ -167,22 +221,42 @@ def _rms(pulls: np.ndarray) -> np.ndarray:
     return np.sqrt(np.mean(np.asarray(pulls, float) ** 2, axis=0))
 
 
+def _kinds(text: str) -> tuple[str, ...]:
+    """``--kinds``: comma-separated noise kinds, each known, none twice."""
+    kinds = tuple(k.strip() for k in text.split(",") if k.strip())
+    unknown = [k for k in kinds if k not in ALL_KINDS]
+    if unknown:
+        raise argparse.ArgumentTypeError(
+            f"unknown noise kind(s) {', '.join(unknown)}; choose from {', '.join(ALL_KINDS)}"
+        )
+    if not kinds or len(set(kinds)) != len(kinds):
+        raise argparse.ArgumentTypeError("give at least one noise kind, none twice")
+    return kinds
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--campaigns", type=int, default=60)
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument(
+        "--kinds",
+        type=_kinds,
+        default=KINDS,
+        help=f"comma-separated noise kinds of {', '.join(ALL_KINDS)} (default: "
+        f"{','.join(KINDS)}, the previous campaigns)",
+    )
     a = ap.parse_args(argv)
     t0 = time.perf_counter()
     with ProcessPoolExecutor(a.workers) as pool:
-        recs = list(pool.map(one_campaign, [(i, a.seed) for i in range(a.campaigns)]))
+        recs = list(pool.map(one_campaign, [(i, a.seed, a.kinds) for i in range(a.campaigns)]))
     print(f"{len(recs)} campaigns in {time.perf_counter() - t0:.0f} s ({a.workers} workers)")
     print(
         "| noise | campaigns | line-centre tau pull rms at t_cut 2 / 4 / 8 us | A pull rms "
         "| kappa range |"
     )
     print("|---|---|---|---|---|")
-    for kind in KINDS:
+    for kind in a.kinds:
         rs = [r for r in recs if r["kind"] == kind]
         if rs:
             rms = _rms(np.array([r["pull"] for r in rs]))

@@ -61,7 +61,9 @@ from bayes_tfcrds.fit.extensions import (
 )
 from bayes_tfcrds.fit.h_calibration import AnalysisError, account_for_noise_colour, calibrate
 from bayes_tfcrds.fit.line_analysis import doppler_of
+from bayes_tfcrds.fit.refine import from_sample, sample_jacobian, to_sample
 from bayes_tfcrds.fit.spectrum import absorption_from_tau
+from bayes_tfcrds.physics.transfer_function import outside_support
 
 CANDIDATES = (
     "transfer_function",
@@ -527,44 +529,103 @@ def _reference_gaps(beat, ref, line, t_cuts, u_h: float = 0.0) -> dict:
     return gaps
 
 
+def _h_covariance(cal) -> tuple[tuple, np.ndarray | None]:
+    """H's joint covariance (:meth:`Calibration.covariance`), natural units; None without one.
+
+    A calibration made without the refinement's gain (not by :func:`_calibration`), or whose
+    joint covariance is not finite, has none.
+    """
+    try:
+        names, cov = cal.covariance()
+    except ValueError:
+        return (), None
+    return (names, cov) if np.all(np.isfinite(cov)) else ((), None)
+
+
+def _marginal_u(cal) -> dict:
+    """Each parameter's own u: the refinement's where it refined it, the beat note's otherwise."""
+    u = {k: v for k, v in cal.beat.stderr.items() if k != "scale"}
+    if cal.refined is not None:
+        u.update(cal.refined.stderr)
+    return {k: v for k, v in u.items() if np.isfinite(v) and v > 0}
+
+
+H_EIGEN_FLOOR = 1e-12  # correlation eigenvalues below this fraction of the largest: no direction
+
+
+def _h_directions(cal) -> tuple[tuple, list]:
+    """(names, steps): one step per principal axis of H's covariance, 1 sigma long.
+
+    In the refinement's parametrisation phi (log of the positive parameters, where the beat note
+    and the refinement are linear): with Rho = V diag(lambda) V' the correlation of phi (sd s),
+    the steps s * v_k sqrt(lambda_k) satisfy sum_k d_k d_k' = Cov(phi), so for an A linear in
+    phi the squared half-differences along them sum to g' Cov g, correlations included. Without
+    a joint covariance, each parameter alone by its own u (correlations neglected).
+    """
+    names, cov = _h_covariance(cal)
+    if cov is None:
+        u = _marginal_u(cal)
+        names = tuple(u)
+        jac = sample_jacobian(names, cal.params.as_vector(names))
+        return names, [np.eye(len(names))[k] * u[n] / jac[k] for k, n in enumerate(names)]
+    jac = sample_jacobian(names, cal.params.as_vector(names))
+    cov = cov / np.outer(jac, jac)
+    sd = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    keep = sd > 0
+    names, cov, sd = tuple(n for n, k in zip(names, keep) if k), cov[np.ix_(keep, keep)], sd[keep]
+    if not names:
+        return (), []
+    lam, vec = np.linalg.eigh(cov / np.outer(sd, sd))
+    ok = lam > H_EIGEN_FLOOR * lam.max()
+    return names, [sd * vec[:, k] * np.sqrt(lam[k]) for k in np.nonzero(ok)[0]]
+
+
+def _stepped(params, names, step):
+    """``params`` moved by ``step`` in the sampled parametrisation, or None outside H's domain."""
+    try:
+        phi = to_sample(names, params.as_vector(names)) + step
+        tf = params.with_vector(from_sample(names, phi), names)
+    except ValueError:
+        return None
+    return None if outside_support(tf, names) else tf
+
+
 def h_area_uncertainty(
     bundle, config, state: ModelState, t_cut_s, good, tau_start, area_hz_per_m: float
 ) -> float:
-    """u(A) (Hz/m) from the uncertainty of H: A refitted with each H parameter at value +/- u.
+    """u(A) (Hz/m) from H's uncertainty: A refitted with H at +/- 1 sigma along its principal axes.
 
-    Each parameter's u is the refinement's where it refined it, the beat note's otherwise;
-    their correlations are neglected; a side outside H's domain leaves the one-sided difference
-    from ``area_hz_per_m`` (A at the state's H). 0 without a transfer function in the model.
-    Without it, A/A_ref - 1 is judged against the fits' noise alone (3.6e-5 and 8.3e-5
-    relative on a reduced D2 campaign) while H's f_c alone moves A by 1.4e-4.
+    The axes are those of H's joint covariance (:meth:`Calibration.covariance`, its gain on the
+    held parameters made by refits: :func:`refit_gain`).
+    The refined f_c follows the resonance the beat note states (|rho| up to 1): moving each
+    parameter alone by its marginal u, correlations neglected, over-stated this part 1.25-8x on
+    letter and zoo chains. A side outside H's domain leaves the one-sided difference from
+    ``area_hz_per_m`` (A at the state's H). 0 without a transfer function in the model.
+    Without it, A/A_ref - 1 is judged against the fits' noise alone (3.6e-5 and 8.3e-5 relative
+    on a reduced D2 campaign) while H's f_c alone moves A by 1.4e-4.
     """
     cal = state.calibration
     if state.model.method != "tf-crds" or cal is None:
         return 0.0
-    u = {k: v for k, v in cal.beat.stderr.items() if k != "scale"}
-    if cal.refined is not None:
-        u.update(cal.refined.stderr)
+    names, steps = _h_directions(cal)
     rd = config.ringdowns
     nu = np.asarray(rd.nu_hz, float)[good]
     tc = np.full(good.size, float(t_cut_s))
     var = 0.0
-    for name, up in u.items():
-        if not (np.isfinite(up) and up > 0):
-            continue
+    for step in steps:
         areas = []
         for sign in (-1.0, 1.0):
-            try:
-                tf = replace(cal.params, **{name: getattr(cal.params, name) + sign * up})
-            except ValueError:  # outside H's physical domain: the other side alone
+            tf = _stepped(cal.params, names, sign * step)
+            if tf is None:  # outside H's physical domain: the other side alone
                 continue
             spec = replace(state.spec(), tf=tf)
             res = fit_transient_rows(rd, tc, good, spec, tau_start)
             lf = fit_lines(bundle, config, state.model, nu, res.tau_s, res.tau_u_s)
-            areas.append((sign, lf.value("line_area")))
+            areas.append(lf.value("line_area"))
         if len(areas) == 2:
-            var += ((areas[1][1] - areas[0][1]) / 2) ** 2
+            var += ((areas[1] - areas[0]) / 2) ** 2
         elif areas:
-            var += (areas[0][1] - area_hz_per_m) ** 2
+            var += (areas[0] - area_hz_per_m) ** 2
     return float(np.sqrt(var))
 
 
@@ -662,14 +723,18 @@ _CAL_CACHE: dict = {}
 
 
 def _calibration(config, window, t_cuts):
-    """H calibration (beat note + refinement of f_c with ``window``), cached per configuration."""
+    """H calibration (beat note + refinement of f_c with ``window``), cached per configuration.
+
+    Always with the refinement's gain on the beat-note parameters (the joint covariance of H
+    that u_H(A) and the bootstrap's H draws need), so the key does not hold it.
+    """
     key = (id(config), window, tuple(t_cuts))
 
     def make():
         # on a flat beat note (no chain) the refinement's scaling divides 0/0 before it fails;
         # the failure itself is reported by the caller, the warnings would only be noise
         with np.errstate(invalid="ignore", divide="ignore"):
-            return calibrate(config, t_cuts_s=tuple(t_cuts), window=window)
+            return calibrate(config, t_cuts_s=tuple(t_cuts), window=window, sensitivities=True)
 
     return _memo(_CAL_CACHE, key, config, make)
 

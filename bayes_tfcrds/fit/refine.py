@@ -165,8 +165,10 @@ class HPrior:
 class RefinedTF:
     """Refined H.
 
-    ``params`` at the optimum; ``cov`` the covariance of ``free`` (natural units: the posterior
-    given the beat note when there is a prior, the ring-down sandwich otherwise); ``cov_naive``
+    ``params`` at the optimum; ``cov`` the covariance of ``free`` given the parameters held
+    fixed (natural units: the posterior given the beat note when there is a prior, the ring-down
+    sandwich otherwise; the held ones' own uncertainty enters through :meth:`conditional`, see
+    ``Calibration.covariance``); ``cov_naive``
     the inverse of the information that counts every truncation as independent data (for
     comparison); chi2 and dof of the composite ring-down fit; tau per record (``tau_s``, s);
     ``weight`` the composite-likelihood adjustment w; with a prior, ``prior_mean`` and
@@ -234,12 +236,15 @@ class RefinedTF:
                 out[n] = float(self.rd_information[i, i] * var[self.prior.names.index(n)])
         return out
 
-    def draw_given(self, others_values, others, rng: np.random.Generator | None) -> np.ndarray:
+    def draw_given(
+        self, others_values, others, rng: np.random.Generator | None, gain=None
+    ) -> np.ndarray:
         """Draws of the refined parameters given draws of the others (natural units, (n, n_o)).
 
         phi_R = phi*_R + G (phi_O - phi*_O) + e, e ~ N(0, cov) in the sampled parametrisation:
         every draw is positive where it must be (the prior's other bounds are the caller's).
-        With ``rng`` None, e = 0 (the conditional mean).
+        With ``rng`` None, e = 0 (the conditional mean). G is the implicit derivative
+        (:meth:`conditional`) unless ``gain`` gives it (natural units, (n_free, n_o)).
         """
         others = tuple(others)
         ov = np.atleast_2d(np.asarray(others_values, float))
@@ -248,7 +253,12 @@ class RefinedTF:
         out = np.tile(centre, (n, 1))
         if others:
             rest = [nm for nm in self.sens_names if nm not in self.free]
-            g = self.gain_sample[:, [rest.index(nm) for nm in others]]
+            if gain is None:
+                g = self.gain_sample[:, [rest.index(nm) for nm in others]]
+            else:  # natural units to the sampled parametrisation's
+                jr = sample_jacobian(self.free, self.params.as_vector(self.free))
+                jo = sample_jacobian(others, self.params.as_vector(others))
+                g = np.asarray(gain, float) * jo[None, :] / jr[:, None]
             here = to_sample(others, self.params.as_vector(others))
             d_o = to_sample(others, ov.T).T - here[None, :]
             out = out + d_o @ g.T

@@ -153,17 +153,23 @@ def test_bootstrap_analyses_each_replicate_with_an_h_drawn_from_its_uncertainty(
     cal = state.calibration
     rng = np.random.default_rng(1)
     draws = [h_drawn_state(state, rng).calibration for _ in range(400)]
-    # the beat-note parameters (those not refined) follow the beat fit's covariance, the refined
-    # ones the refinement's; 400 draws give each sd to 1/sqrt(800) = 3.5 %, so 15 % is 4 of those
-    beat_free = [n for n in cal.beat.free if cal.refined is None or n not in cal.refined.free]
-    src = [(n, cal.beat, list(cal.beat.free).index(n)) for n in beat_free]
-    if cal.refined is not None:
-        src += [(n, cal.refined, i) for i, n in enumerate(cal.refined.free)]
-    for name, fit, i in src:
-        x = np.array([getattr(d.params, name) for d in draws])
-        sd = np.sqrt(fit.cov[i, i])
-        assert abs(x.std() / sd - 1) < 0.15, (name, x.std(), sd)
-        assert abs(x.mean() - getattr(fit.params, name)) < 4 * sd / np.sqrt(400), name
+    # the draws follow H's joint law (Calibration.covariance): the beat-note parameters the beat
+    # fit's covariance, the refined ones that given the drawn others plus how they follow them.
+    # 400 draws give each sd to 1/sqrt(800) = 3.5 %, so 15 % is 4 of those; a correlation to
+    # (1 - rho^2)/sqrt(400) <= 0.05, so 0.2 is 4 of those
+    names, cov = cal.covariance()
+    assert cal.refined is not None and len(names) > len(cal.refined.free)  # something to follow
+    x = np.array([[getattr(d.params, n) for n in names] for d in draws])
+    sd = np.sqrt(np.diag(cov))
+    for i, name in enumerate(names):
+        assert abs(x[:, i].std() / sd[i] - 1) < 0.15, (name, x[:, i].std(), sd[i])
+        assert abs(x[:, i].mean() - getattr(cal.params, name)) < 4 * sd[i] / np.sqrt(400), name
         assert not any(outside_support(d.params, [name]) for d in draws)
+    rho, rho_x = cov / np.outer(sd, sd), np.corrcoef(x.T)
+    for i, _ in enumerate(cal.refined.free):
+        for j in range(len(cal.refined.free), len(names)):
+            assert abs(rho_x[i, j] - rho[i, j]) < 0.2, (names[i], names[j], rho_x[i, j], rho[i, j])
+    # something is correlated, or the check above could not fail
+    assert np.abs(rho[: len(cal.refined.free), len(cal.refined.free) :]).max() > 0.3
     # the data's own analysis keeps its H: drawing never changes the state it was given
     assert state.calibration is cal

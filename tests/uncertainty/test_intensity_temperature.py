@@ -122,3 +122,51 @@ def test_linefit_reports_the_same_s_at_296_k():
     # a sample outside the partition-function table gets no S(T_ref), and says why
     cold = intensity_entry(1.0e3, 1.0, 1.0e22, 50.0)
     assert cold["value"] is None and "never extrapolated" in cold["note"]
+
+
+def test_simulate_cli_writes_the_sample_at_the_given_temperature_and_pressure(tmp_path):
+    """``simulate --temperature 325 --pressure 900``: the gas of the bundle is at 325 K, 900 Pa.
+
+    /sample records them, with the gauge's u at the campaign's relative value (0.05 % of p); the
+    truth's line is the simulator's at that T and p (S(T) from S(296 K), A = S(T) N); and the
+    budget refers the measured S back to S(296 K) within its stated u of the truth.
+    """
+    from bayes_tfcrds.bundle.reader import load_bundle, load_truth
+    from bayes_tfcrds.cli import main
+    from bayes_tfcrds.core.constants import intensity_from_cm_per_molecule, number_density
+    from bayes_tfcrds.physics.linedata import load_line
+
+    out = tmp_path / "warm.h5"
+    argv = ["simulate", "--preset", "letter-D2", "--points", "41", "--seed", "3"]
+    assert main([*argv, "--temperature", "325", "--pressure", "900", "-o", str(out), "-q"]) == 0
+    bundle, truth = load_bundle(out), load_truth(out)
+    sample, default = bundle.sample, Campaign()
+    assert sample.temperature_k == 325.0 and sample.pressure_pa == 900.0
+    # the gauge keeps the campaign's relative u: 0.333 Pa of 666.6 Pa (rel=1e-12: the same
+    # product in another order, a few ulp), which is 0.05 % rounded to three digits (0.04996 %),
+    # hence rel=1e-3 against 0.05 % of 900 Pa; the temperature's u (0.03 K) is absolute
+    rel_u = default.pressure_u_pa / default.pressure_pa
+    assert sample.pressure_u_pa == pytest.approx(rel_u * 900.0, rel=1e-12)
+    assert sample.pressure_u_pa == pytest.approx(5e-4 * 900.0, rel=1e-3)
+    assert sample.temperature_u_k == default.temperature_u_k
+    # the truth's line is the one at 325 K and 900 Pa (rel=1e-12: the same formulas, rounding)
+    line = truth["line"]
+    s_true, s_t_true = line["intensity_ref_cm_per_molecule"], line["intensity_cm_per_molecule"]
+    assert s_true == 8.0603e-25  # S(296 K) of the line data, whatever the sample's T
+    assert s_t_true == pytest.approx(s_true * load_line().intensity_ratio(325.0), rel=1e-12)
+    # S(325 K)/S(296 K) measured 1.44221 (TIPS-2021 Q(T), E'' = 1059 cm^-1); rel=1e-4 is a
+    # regression guard on the partition table and the Boltzmann factor
+    assert s_t_true / s_true == pytest.approx(1.44221, rel=1e-4)
+    area = float(intensity_from_cm_per_molecule(s_t_true, number_density(900.0, 325.0)))
+    assert line["line_area_hz_per_m"] == pytest.approx(area, rel=1e-12)
+    # the budget's S(296 K) from the 325 K campaign: within 3 u of the truth (u is a standard
+    # uncertainty with large nu_eff, so a correct budget is inside 3 u in 99.7 % of seeds; this
+    # seed measured +0.27 u, u = 0.067 %). A simulator left at 296 K behind a /sample saying
+    # 325 K gives an S(296 K) 24 % low (measured -44 of its u).
+    res = run_budget(bundle, bundle.configs["D2"], FAST, np.random.default_rng(2))
+    s = res.summary["intensity"]
+    assert s["t_ref_k"] == 296.0 and s["sample_temperature_k"] == 325.0
+    assert abs(s["value"] - s_true) < 3 * s["u"], ((s["value"] - s_true) / s["u"], s["u"] / s_true)
+    # and S at the sample's T is the truth's S(325 K), with u scaled by the same T conversion
+    ratio = s["value_at_sample_temperature"] / s["value"]
+    assert abs(s["value_at_sample_temperature"] - s_t_true) < 3 * s["u"] * ratio
