@@ -28,6 +28,7 @@ Usage:  python benchmarks/h_area_uncertainty.py --zoo 4 --draws 100 --seed 5 --w
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -216,13 +217,10 @@ def main(argv=None) -> int:
             flush=True,
         )
 
-    if args.workers > 1:
-        with ProcessPoolExecutor(max_workers=args.workers) as pool:
-            for rec in pool.map(run_case, tasks):
-                keep(rec)
-    else:
-        for t in tasks:
-            keep(run_case(t))
+    parallel = args.workers > 1
+    with ProcessPoolExecutor(args.workers) if parallel else contextlib.nullcontext() as pool:
+        for rec in (pool.map if parallel else map)(run_case, tasks):
+            keep(rec)
     v = verdict(records)
     print(table(records))
     print(

@@ -26,21 +26,14 @@ from bayes_tfcrds.fit.extensions import fit_transient_rows
 from bayes_tfcrds.fit.h_calibration import calibrate
 from bayes_tfcrds.fit.refine import sample_jacobian
 from bayes_tfcrds.physics.transfer_function import TFParams
-from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+from tests.discovery.campaigns import letter_d2_with_chain
 
-CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
 T_CUTS = (2e-6, 4e-6, 6e-6)
 
 
 @pytest.fixture(scope="module")
 def d2():
-    bundle, _ = simulate_campaign(
-        ["letter-D2"],
-        np.random.default_rng(8),
-        CAMPAIGN,
-        {"transfer_function": {}},
-        line_effects_default=False,
-    )
+    bundle = letter_d2_with_chain(8)
     cfg = bundle.configs["D2"]
     state = _start_state(bundle, cfg, "transfer_function", T_CUTS)
     return bundle, cfg, state

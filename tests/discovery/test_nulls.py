@@ -19,6 +19,7 @@ from bayes_tfcrds.discovery.workflow import ExperimentModel, ModelState, evaluat
 from bayes_tfcrds.fit.extensions import TransientSpec, fit_transient_rows
 from bayes_tfcrds.fit.transient_model import model_transients
 from bayes_tfcrds.simulate.campaign import Campaign, simulate_campaign
+from tests.discovery.campaigns import letter_d2_with_chain
 
 CAMPAIGN = replace(Campaign(), n_points=21, n_samples=4096)
 
@@ -139,13 +140,7 @@ def test_bootstrap_analyses_each_replicate_with_an_h_drawn_from_its_uncertainty(
     from bayes_tfcrds.discovery.workflow import _start_state
     from bayes_tfcrds.physics.transfer_function import outside_support
 
-    bundle, _ = simulate_campaign(
-        ["letter-D2"],
-        np.random.default_rng(8),
-        CAMPAIGN,
-        {"transfer_function": {}},
-        line_effects_default=False,
-    )
+    bundle = letter_d2_with_chain(8)
     cfg = bundle.configs["D2"]
     plain = ModelState(ExperimentModel())
     assert h_drawn_state(plain, np.random.default_rng(0)) is plain  # no H, nothing to draw
