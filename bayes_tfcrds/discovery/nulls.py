@@ -128,6 +128,18 @@ def simulated_ringdowns(config, ev, noise: NoiseModel, rng):
     return replace(rd, signal_v=sig)
 
 
+def _inside_support(draw, free, tries: int = 20):
+    """The first of ``tries`` calls of ``draw()`` (a TFParams) inside H's support in ``free``.
+
+    None when every draw leaves it: the caller keeps its H undrawn.
+    """
+    for _ in range(tries):
+        p = draw()
+        if not outside_support(p, free):
+            return p
+    return None
+
+
 def _draw_params(params, free, cov, rng, tries: int = 20):
     """``params`` with ``free`` drawn from N(their values, cov), inside H's support (or None)."""
     k = len(free)
@@ -135,11 +147,11 @@ def _draw_params(params, free, cov, rng, tries: int = 20):
     if k == 0 or not np.all(np.isfinite(cov)):
         return None
     mean = params.as_vector(free)
-    for _ in range(tries):
-        p = params.with_vector(rng.multivariate_normal(mean, cov, method="eigh"), free)
-        if not outside_support(p, free):
-            return p
-    return None
+    return _inside_support(
+        lambda: params.with_vector(rng.multivariate_normal(mean, cov, method="eigh"), free),
+        free,
+        tries,
+    )
 
 
 def h_drawn_state(state, rng):
@@ -182,11 +194,11 @@ def _draw_refined(cal, base, rng, tries: int = 20):
     Raises ValueError when the calibration has no gain on the others.
     """
     free, others = cal.refined.free, cal.others
-    for _ in range(tries):
-        p = base.with_vector(cal.refined_given(base.as_vector(others), rng)[0], free)
-        if not outside_support(p, free):
-            return p
-    return None
+    return _inside_support(
+        lambda: base.with_vector(cal.refined_given(base.as_vector(others), rng)[0], free),
+        free,
+        tries,
+    )
 
 
 @dataclass(frozen=True)

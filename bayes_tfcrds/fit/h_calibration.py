@@ -50,15 +50,14 @@ class Calibration:
     @property
     def others(self) -> tuple:
         """The beat note's free parameters the refinement held at the beat note's values."""
-        ref = self.refined
-        return tuple(n for n in self.beat.free if ref is not None and n not in ref.free)
+        return () if self.refined is None else held(self.beat.free, self.refined.free)
 
     def gain_on_others(self) -> np.ndarray:
         """d(refined)/d(others), natural units (n_refined, n_others).
 
         The refits' central differences when ``calibrate(..., sensitivities=True)`` made them,
         else the refinement's implicit derivative (:meth:`RefinedTF.conditional`). The latter is
-        Gauss-Newton: exact where the model describes the ring-downs, 40 % low on a D2 campaign
+        Gauss-Newton: exact where the model describes the ring-downs, 28-32 % low on a D2 campaign
         fitted with the letter's window while a window history was in the data.
         Raises ValueError when neither exists.
         """
@@ -509,7 +508,7 @@ def calibrate(
     if not refine:
         return Calibration(beat=beat, refined=None)
     prior = HPrior.from_beat(beat) if update else None
-    sens = tuple(free) + tuple(n for n in beat.free if n not in free) if sensitivities else ()
+    sens = tuple(free) + held(beat.free, free) if sensitivities else ()
     refined, idx = refine_on_records(
         config, beat.params, free, window, t_cuts_s, n_points, prior, sens_names=sens
     )
@@ -530,12 +529,17 @@ def calibrate(
 GAIN_STEP = 0.3  # the refits' step of each held parameter, in its beat-note sd
 
 
+def held(beat_free, refined_free) -> tuple:
+    """The beat note's free parameters a refinement of ``refined_free`` holds, in beat order."""
+    return tuple(n for n in beat_free if n not in refined_free)
+
+
 def refit_gain(config, beat: TFFit, refined: RefinedTF, window, t_cuts_s, idx, prior):
     """d(refined)/d(others) of the refinement, by refits with each other parameter moved.
 
     The refinement's own derivative (:meth:`RefinedTF.conditional`) is Gauss-Newton: it drops
     the residuals' curvature, and where the forward model misses something (what discovery looks
-    for) it was 40 % low on a letter D2 chain; the refits are the estimator itself. Each refit
+    for) it was 28-32 % low on a letter D2 chain; the refits are the estimator itself. Each refit
     starts, as the refinement did, from the beat note's H, here with one held parameter moved
     +/- GAIN_STEP of its beat-note sd (on that chain the slope was the same within 0.02 % from
     0.1 to 1 sd), on the same records with the same noise.
@@ -557,7 +561,7 @@ def refit_gain(config, beat: TFFit, refined: RefinedTF, window, t_cuts_s, idx, p
         takes the implicit derivative; None when that is missing too.
     """
     free = tuple(refined.free)
-    others = tuple(n for n in beat.free if n not in free)
+    others = held(beat.free, free)
     sd = dict(zip(beat.free, np.sqrt(np.clip(np.diag(beat.param_cov), 0.0, None))))
 
     def refit(start):

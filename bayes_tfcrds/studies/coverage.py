@@ -60,8 +60,9 @@ LABELS = {
 }
 #: the full-budget quantities (u_c with the Type B rows)
 UC_QUANTITIES = ("A (u_c)", "A/A_ref (u_c)", "S (u_c)")
-# 2: drawn T, gauge reading errors, S (u_c); 3: chain and noise strata; 4: f_c identified or not
-RECORD_VERSION = 4
+# 2: drawn T, gauge reading errors, S (u_c); 3: chain and noise strata; 4: f_c identified or not;
+# 5: h_region (where the ring-downs refined H)
+RECORD_VERSION = 5
 #: the chain regime of a letter preset (the issue's strata: D1/D2-like, D3/D4-like, chain zoo)
 PRESET_REGIME = {
     "letter-D1": "D1/D2-like",
@@ -405,6 +406,8 @@ def analyse_campaign(bundle, truth, options, rng: np.random.Generator) -> dict:
     q["f_c"].update(_f_c_identification(res.identification, f_c_true, q["f_c"]))
     out["quantities"] = q
     out["detuning_centre_hz"] = float(nu[k] - bundle.sample.nu0_hz)
+    # why H was not refined about the least-squares beat note (None: it was; posterior_steps)
+    out["h_region"] = (s["transfer_function"].get("refinement") or {}).get("region")
     return out
 
 

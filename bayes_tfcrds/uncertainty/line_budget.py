@@ -1353,8 +1353,12 @@ def _n_r_record(h_draws, names) -> dict:
     }
 
 
-def _refinement_summary(refined) -> dict:
-    """How the ring-downs updated the beat note: per parameter values, u, shift and tension z."""
+def _refinement_summary(refined, region: str | None = None) -> dict:
+    """How the ring-downs updated the beat note: per parameter values, u, shift and tension z.
+
+    ``region``: why the refinement was not made about the least-squares beat note, or why the
+    H draws are not the MCMC's (posterior_steps.refinement_region); None in the usual case.
+    """
     c2, dof, p = refined.tension_chi2
     return {
         "parameters": refined.tension(),
@@ -1367,6 +1371,7 @@ def _refinement_summary(refined) -> dict:
         # the prior the ring-downs updated: the least-squares beat note, or the sampled beat-note
         # posterior's moments where the refinement could not be linearised about the former
         "beat_note_prior": None if refined.prior is None else refined.prior.source,
+        "region": region,
         "note": "z: shift of the refined value from the beat note over its expected scatter when "
         "both agree; |z| > 3 is reported as a finding",
     }
@@ -1702,7 +1707,9 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
     add_to_summary(summary, budgets, mc)
     summary["instrument"] = {row.component.name: row.detail for row in instrument}
     if refined is not None:
-        summary["transfer_function"]["refinement"] = _refinement_summary(refined)
+        summary["transfer_function"]["refinement"] = _refinement_summary(
+            refined, (h_parts or {}).get("region")
+        )
     if form is not None:
         summary["transfer_function"]["model_form"] = form
         # the ring-downs may have asked for more parameters than the options named

@@ -566,6 +566,8 @@ def refinement_markdown(refinement: dict) -> str:
         f"Joint tension chi2 = {refinement['tension_chi2']:.2f} ({refinement['tension_dof']} dof, "
         f"p = {refinement['tension_p']:.3g})" + (finding if refinement["in_tension"] else "")
     )
+    if refinement.get("region"):  # why H was not refined about the least-squares beat note
+        rows += ["", f"Where H was refined: {refinement['region']}."]
     return "\n".join(rows)
 
 

@@ -549,6 +549,90 @@ def sampled_beat_prior(post, run) -> HPrior:
     return HPrior(names, centre, cov * np.outer(jac, jac), source="beat note (MCMC moments)")
 
 
+#: the share of the sampled beat-note posterior, in each tail of a held parameter's marginal,
+#: beyond which the refinement's linearisation point counts as outside the posterior's mass: 1e-3
+#: per tail is ~3.1 sigma of a Gaussian, so an optimum inside its own posterior (where every
+#: well-behaved chain has it: within about 1 sigma of the mean) is never taken for another region
+AWAY_TAIL = 1.0e-3
+
+
+def mass_away(refined, post, run) -> tuple:
+    """The held parameters whose sampled beat-note posterior has no mass at the refined point.
+
+    ``refined`` linearised about its point (its ``params``); its conditional of the refined
+    parameters given the held ones is valid near that point only. Where the MCMC run's draws of a
+    held parameter all lie beyond it (the point outside their central 1 - 2 AWAY_TAIL range), the
+    beat note's posterior mass sits in another description of |H| (a non-minimum-phase one of
+    the same |H| with a larger prior volume, say), and the conditional, extrapolated there, would
+    put the refined parameters anywhere.
+    """
+    nat = post.to_params(run.flat())
+    away = []
+    for n in post.free:
+        if n in refined.free:
+            continue
+        lo, hi = np.quantile(nat[n], [AWAY_TAIL, 1.0 - AWAY_TAIL])
+        if not lo <= getattr(refined.params, n) <= hi:
+            away.append(n)
+    return tuple(away)
+
+
+@dataclass(frozen=True)
+class RefinementRegion:
+    """Where the ring-down refinement of H is linearised, and which beat-note draws it weighs.
+
+    ``prior`` None: the least-squares beat note (the usual case); else the sampled posterior's
+    moments. ``run`` the MCMC run whose draws the ring-downs weigh, or None for the beat fit's
+    Laplace approximation (the ring-downs reject where the run's mass lies). ``first`` the
+    refinement already made at the least-squares point (reused when it stands). ``note`` says
+    why, for budget.json; None in the usual case.
+    """
+
+    prior: HPrior | None
+    run: object
+    first: object
+    note: str | None = None
+
+
+def refinement_region(config, options, beat, post, run, free) -> RefinementRegion:
+    """Choose the region of the beat-note posterior in which the ring-downs refine H.
+
+    The beat note sees |H| only; a description of the same |H| with another phase can hold most
+    of its posterior mass (a larger prior volume) while the ring-downs, which see the phase,
+    reject it. So: refine about the least-squares beat note; where the sampled posterior has no
+    mass there (:func:`mass_away`), refine about the sampled mass too, and keep the region the
+    ring-downs accept. If they reject the sampled mass (tension) and accept the least-squares
+    point, the joint posterior lies in the least-squares mode, which the run did not sample:
+    its Laplace approximation supplies the draws. Otherwise the sampled mass is used.
+    """
+    first, idx = ring_down_update(config, options, beat, free, tuple(beat.free))
+    if run is None:
+        return RefinementRegion(None, None, (first, idx))
+    away = mass_away(first, post, run)
+    if not away:
+        return RefinementRegion(None, run, (first, idx))
+    prior = sampled_beat_prior(post, run)
+    second, idx2 = ring_down_update(config, options, beat, free, tuple(beat.free), prior=prior)
+    where = ", ".join(f"{n} = {getattr(second.params, n):.4g}" for n in away)
+    if second.in_tension and not first.in_tension:
+        c2 = second.tension_chi2
+        return RefinementRegion(
+            None,
+            None,
+            (first, idx),
+            f"the beat-note MCMC's mass lies in another description of |H| ({where}) that the "
+            f"ring-downs reject (tension chi2 {c2[0]:.3g} for {c2[1]} dof); they accept the "
+            "least-squares beat note, so H is drawn from its Laplace approximation there",
+        )
+    return RefinementRegion(
+        prior,
+        run,
+        (second, idx2),
+        f"the beat-note MCMC's mass lies away from the least-squares beat note ({where}): "
+        "the refinement is linearised about the sampled posterior's moments",
+    )
+
+
 def in_support(draws: np.ndarray, priors) -> np.ndarray:
     """Rows of ``draws`` (n, len(priors), natural units) where every prior's density is > 0."""
     d = np.atleast_2d(np.asarray(draws, float))
@@ -678,17 +762,27 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         parts = {"others": post.free, "refined": (), "records": None, "beat_draws": draws}
         parts["names"] = post.free
         return beat, None, beat.params, draws, run, parts
-    free, prior = tuple(options.refine_free), None
+    free = tuple(options.refine_free)
+    region = refinement_region(config, options, beat, post, run, free)
+    prior, source, made, note = region.prior, region.run, region.first, region.note
     while True:
-        refined, idx = ring_down_update(config, options, beat, free, tuple(beat.free), prior=prior)
+        if made is None:
+            made = ring_down_update(config, options, beat, free, tuple(beat.free), prior=prior)
+        (refined, idx), made = made, None
         try:
-            draws, beat_draws, weights = _joint_draws(beat, post, run, refined, options, rng)
+            draws, beat_draws, weights = _joint_draws(beat, post, source, refined, options, rng)
         except AnalysisError:
             if prior is not None or run is None:
                 raise
             # linear about the least-squares optimum, the refinement reaches no draw of the
-            # sampled posterior: linearise where the posterior's mass is, and weigh again
-            prior = sampled_beat_prior(post, run)
+            # sampled posterior (or of its Laplace approximation, where refinement_region chose
+            # that): linearise where the sampled posterior's mass is, and weigh again
+            if source is None:  # the region the ring-downs accepted has no draw in the support
+                note = (
+                    f"{note}; but those Laplace draws leave the prior's support, so the "
+                    "refinement is linearised about the sampled posterior's moments after all"
+                )
+            prior, source = sampled_beat_prior(post, run), run
             continue
         ratio = refined.information_ratio()
         if weights.passed or not ratio:
@@ -704,6 +798,7 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         "records": idx,
         "beat_draws": beat_draws,
         "weights": weights,
+        "region": note,
     }
     return beat, refined, posterior_centre(refined.params, draws, post.free), draws, run, parts
 

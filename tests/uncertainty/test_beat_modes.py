@@ -301,7 +301,8 @@ def test_a_refinement_that_reaches_no_draw_is_linearised_again_where_the_posteri
     def update(config, options, beat, free, sens_names=(), noise_v=None, prior=None):
         priors_seen.append(prior)
         start = lsq if prior is None else TFParams(**dict(zip(names, prior.mean)), f_r_hz=3e8)
-        return SimpleNamespace(params=start, free=free, information_ratio=dict, prior=prior), None
+        refined = SimpleNamespace(params=start, free=free, information_ratio=dict, prior=prior)
+        return replace_ns(refined, in_tension=False, tension_chi2=(0.1, 1, 0.75)), None
 
     def joint(beat, post, run, refined, options, rng):
         if refined.params.a_r < 1:  # linear about the optimum: nothing inside the support
@@ -320,6 +321,13 @@ def test_a_refinement_that_reaches_no_draw_is_linearised_again_where_the_posteri
     # the Laplace path has no sampled posterior: the support error is what it reports
     with pytest.raises(AnalysisError, match="outside the prior's support"):
         ps.h_posterior(config, replace(options, posterior="laplace"), None, None, False)
+
+
+def replace_ns(ns, **kw):
+    """A SimpleNamespace with more attributes (a refinement's tension, for the fakes above)."""
+    from types import SimpleNamespace
+
+    return SimpleNamespace(**{**vars(ns), **kw})
 
 
 def test_mode_covariance_is_positive_definite_when_its_correlation_is_singular_to_rounding():
