@@ -354,6 +354,7 @@ def _bundle_line(bundle, config, args):
     When H's posterior cannot be drawn or fails its gates, the line is fitted at the
     calibration's H and u(A) is the fit's alone (said, and labelled ``fit`` in the JSON).
     """
+    from bayes_tfcrds.core.constants import line_area_to_cm2
     from bayes_tfcrds.fit.h_calibration import account_for_noise_colour, calibrate
     from bayes_tfcrds.fit.line_analysis import analyse_line, check_t_cuts
     from bayes_tfcrds.uncertainty.line_area import analyse_line_with_h
@@ -379,9 +380,10 @@ def _bundle_line(bundle, config, args):
     result, _ = analyse_line_with_h(
         bundle, config, cal, None, args.tcut[0], h=h, noise=noise, **options
     )
+    u_fit, u_h = line_area_to_cm2([result.line_fit.line_area_u, result.line_area_u_h_si])
     _say(
-        f"# H: the centre of its posterior; u(A): the line fit's {result.line_fit.line_area_u:.3g} "
-        f"and H's {result.line_area_u_h_si:.3g} Hz/m in quadrature"
+        f"# H: the centre of its posterior; u(A): the line fit's {u_fit:.3g} and H's {u_h:.3g} "
+        "cm^-2 in quadrature"
     )
     return result
 

@@ -26,6 +26,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import optimize
 
+from bayes_tfcrds.core.constants import line_area_from_cm2
 from bayes_tfcrds.fit.h_calibration import calibrate
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import doppler_of
@@ -152,7 +153,7 @@ def main(argv=None):
         " s",
     )
     gd = doppler_of(b.sample)
-    sens = res.summary["sensitivities_hz_per_m"]
+    sens = {k: float(line_area_from_cm2(v)) for k, v in res.summary["sensitivities_cm2"].items()}
     from bayes_tfcrds.fit.h_calibration import BEAT_FREE
 
     h_star = replace(tf)

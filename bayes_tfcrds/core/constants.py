@@ -39,6 +39,36 @@ def line_area_to_cm2(area_si):
     return np.asarray(area_si) / (1.0e4 * C)
 
 
+#: {SI unit inside: (the unit every output shows it in, factor SI -> that unit)}: the one
+#: quantity computed in SI that spectroscopists quote otherwise, the line area (Hz/m -> cm^-2)
+EDGE_UNITS = {"Hz/m": ("cm^-2", 1.0 / (1.0e4 * C))}
+
+
+def edge_unit(unit: str) -> tuple[str, float]:
+    """(unit shown in every output, factor from ``unit``) of an SI unit; others unchanged."""
+    return EDGE_UNITS.get(unit, (unit, 1.0))
+
+
+def edge_keys(record: dict) -> dict:
+    """``record`` for an output: each SI line-area entry (a key with ``hz_per_m``) in cm^-2.
+
+    The key says the unit, and changes with it: ``delta_a_hz_per_m`` becomes ``delta_a_cm2``
+    (cm^-2), ``da_dt_hz_per_m_per_k`` ``da_dt_cm2_per_k``; its number (or each number of a dict
+    under it) is converted, None stays None. Other entries are kept as they are.
+    """
+    f = EDGE_UNITS["Hz/m"][1]
+
+    def shown(v):
+        if isinstance(v, dict):
+            return {k: shown(x) for k, x in v.items()}
+        return None if v is None else f * float(v)
+
+    return {
+        k.replace("hz_per_m", "cm2") if "hz_per_m" in k else k: shown(v) if "hz_per_m" in k else v
+        for k, v in record.items()
+    }
+
+
 def line_area_from_cm2(area_cm2):
     """Integrated line area from cm^-2 to SI (Hz/m)."""
     return np.asarray(area_cm2) * 1.0e4 * C

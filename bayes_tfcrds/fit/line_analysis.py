@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from bayes_tfcrds.core.constants import (
+    edge_unit,
     intensity_to_cm_per_molecule,
     line_area_to_cm2,
     number_density,
@@ -44,15 +45,21 @@ def doppler_of(sample) -> float:
     return float(doppler_hwhm_hz(sample.nu0_hz, sample.temperature_k, sample.mass_u))
 
 
+def _entry(value_si, u_si, unit_si: str) -> dict:
+    """{value, u, unit} in the unit every output shows the quantity in.
+
+    A line area in cm^-2, with its SI twin in value_si, u_si, unit_si; other quantities as they
+    are (SI).
+    """
+    unit, f = edge_unit(unit_si)
+    out = {"value": f * float(value_si), "u": f * float(u_si), "unit": unit}
+    if unit != unit_si:
+        out.update(value_si=float(value_si), u_si=float(u_si), unit_si=unit_si)
+    return out
+
+
 def _area_entry(value_si, u_si):
-    return {
-        "value": float(line_area_to_cm2(value_si)),
-        "u": float(line_area_to_cm2(u_si)),
-        "unit": "cm^-2",
-        "value_si": float(value_si),
-        "u_si": float(u_si),
-        "unit_si": "Hz/m",
-    }
+    return _entry(value_si, u_si, "Hz/m")
 
 
 def check_overlap(config):
@@ -258,12 +265,8 @@ class LineAnalysis:
             "intensity": intensity_entry(
                 lf.line_area, self.line_area_u_si, n, self.temperature_k, self.u_note
             ),
-            "parameters": {
-                name: {
-                    "value": float(v),
-                    "u": float(np.sqrt(lf.cov[i, i])),
-                    "unit": parameter_unit(name, "absorption"),  # SI, as the fit
-                }
+            "parameters": {  # A in cm^-2 as above (SI in value_si, u_si), the rest in SI
+                name: _entry(v, np.sqrt(lf.cov[i, i]), parameter_unit(name, "absorption"))
                 for i, (name, v) in enumerate(zip(lf.names, lf.values))
             },
             "correlation": {

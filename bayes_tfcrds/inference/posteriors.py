@@ -93,18 +93,27 @@ class Prior:
         factor = Fraction(self.cap[1]).limit_denominator(1000)
         return f"{self.parameter} < ({factor}) {self.cap[0]}"
 
-    def to_dict(self) -> dict:
-        """JSON form; an unbounded side is None."""
-        return {
+    def to_dict(self, units=None) -> dict:
+        """JSON form; an unbounded side is None.
+
+        ``units`` ({SI unit: (shown unit, factor)}, e.g. core.constants.EDGE_UNITS) shows the
+        bounds in the unit the outputs use for the parameter; ``unit_si`` then names the
+        sampler's.
+        """
+        shown, f = (units or {}).get(self.unit, (self.unit, 1.0))
+        out = {
             "parameter": self.parameter,
             "family": self.family,
-            "lower": self.lower if math.isfinite(self.lower) else None,
-            "upper": self.upper if math.isfinite(self.upper) else None,
-            "unit": self.unit,
+            "lower": f * self.lower if math.isfinite(self.lower) else None,
+            "upper": f * self.upper if math.isfinite(self.upper) else None,
+            "unit": shown,
             "condition": self.condition,
             "sampled_as": self.sample_name,
             "note": self.note,
         }
+        if shown != self.unit:
+            out["unit_si"] = self.unit
+        return out
 
 
 def outside_priors(priors, values: dict) -> np.ndarray:

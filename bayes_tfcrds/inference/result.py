@@ -91,7 +91,7 @@ class SamplingResult:
         """Every reported quantity: the parameters (natural units), then the derived ones."""
         return {**self.parameters(), **self.derived}
 
-    def to_inference_data(self):
+    def to_inference_data(self, units=None):
         """ArviZ data whose ``az.rhat`` and ``az.ess`` are this run's gated diagnostics.
 
         Posterior dims (chain, draw) in :data:`DRAW_LAYOUT` (chain = ensemble), with coordinates
@@ -100,6 +100,9 @@ class SamplingResult:
         ``ess_bulk``, ``ess_tail``, ``tau_int``, ``n_tau``, ``tau_int_ensembles``, ``gated``) and,
         for a parameter, its prior (``prior_family``, ``prior_lower``, ``prior_upper``,
         ``prior_condition``, ``sampled_as``). The group's attributes: the run and its gates.
+        ``units`` ({SI unit: (shown unit, factor)}, e.g. core.constants.EDGE_UNITS) shows the
+        variables in such a unit, and their prior bounds, in the outputs' unit (``units``; the
+        sampler's in ``units_sampled``); R-hat and ESS do not depend on the scale.
         """
         import xarray as xr
 
@@ -115,13 +118,17 @@ class SamplingResult:
         gated = self.gates.gated
         data = {}
         for name, values in self.variables().items():
-            attrs = {"units": self.units[name]} if name in self.units else {}
+            unit = self.units.get(name)
+            shown, f = (units or {}).get(unit, (unit, 1.0))
+            attrs = {} if unit is None else {"units": shown}
+            if shown != unit:
+                attrs["units_sampled"] = unit  # the diagnostics do not change with the scale
             d = self.diagnostics[name]
             attrs.update({k: np.asarray(d[k], float) for k in _DIAGNOSTIC_KEYS})
             attrs["gated"] = int(gated is None or name in gated)
             if name in priors:
-                attrs.update(_prior_attrs(priors[name]))
-            data[name] = (("chain", "draw"), to_draws(values), attrs)
+                attrs.update(_prior_attrs(priors[name], f))
+            data[name] = (("chain", "draw"), to_draws(f * np.asarray(values)), attrs)
         attrs = dict(
             n_ensembles=e,
             n_walkers=w,
@@ -144,20 +151,21 @@ class SamplingResult:
         stats = xr.Dataset({"lp": (("chain", "draw"), to_draws(self.log_prob))}, coords=coords)
         return _make_inference_data(posterior, stats)
 
-    def save_netcdf(self, path) -> None:
+    def save_netcdf(self, path, units=None) -> None:
         """Write :meth:`to_inference_data` to ``path`` atomically (temp file + os.replace)."""
         with atomic_path(path) as tmp:
-            self.to_inference_data().to_netcdf(tmp)
+            self.to_inference_data(units).to_netcdf(tmp)
 
 
 _DIAGNOSTIC_KEYS = ("rhat", "ess_bulk", "ess_tail", "tau_int", "n_tau", "tau_int_ensembles")
 
 
-def _prior_attrs(prior) -> dict:
+def _prior_attrs(prior, factor: float = 1.0) -> dict:
+    """The prior as netCDF attributes, its bounds times ``factor`` (the variable's shown unit)."""
     return {
         "prior_family": prior.family,
-        "prior_lower": float(prior.lower),
-        "prior_upper": float(prior.upper),
+        "prior_lower": factor * float(prior.lower),
+        "prior_upper": factor * float(prior.upper),
         "prior_condition": prior.condition,
         "sampled_as": prior.sample_name,
     }

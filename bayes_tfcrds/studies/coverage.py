@@ -60,6 +60,17 @@ LABELS = {
 }
 #: the full-budget quantities (u_c with the Type B rows)
 UC_QUANTITIES = ("A (u_c)", "A/A_ref (u_c)", "S (u_c)")
+#: the unit of each quantity's truth, estimate and u in the records (numbers.json "units"); A in
+#: SI throughout this study's outputs, S(296 K) as the budget states it
+UNITS = {
+    "A": "Hz/m",
+    "A/A_ref": "1",
+    "tau_centre": "s",
+    "f_c": "Hz",
+    "A (u_c)": "Hz/m",
+    "A/A_ref (u_c)": "1",
+    "S (u_c)": "cm/molecule",
+}
 # 2: drawn T, gauge reading errors, S (u_c); 3: chain and noise strata; 4: f_c identified or not;
 # 5: h_region (where the ring-downs refined H)
 RECORD_VERSION = 5
@@ -1231,6 +1242,7 @@ def coverage_study(study, rep, out, progress=False, pool=None) -> dict:
     numbers = {
         "posterior": post,
         "n_campaigns": study.n_campaigns,
+        "units": UNITS,  # of the records' truth, estimate and u
         "n_ok": n,
         "failed": [r["status"] for r in bad],
         "truth_distribution": asdict(settings.dist),

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from bayes_tfcrds.core.constants import edge_keys
 from bayes_tfcrds.core.gum import Budget, Component
 from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.physics.lineshape import doppler_hwhm_hz
@@ -45,7 +46,10 @@ class DopplerSensitivity:
     step_k: float = STEP_K
 
     def to_dict(self, a_hat: float, a_ref_hat: float | None = None) -> dict:
-        """For budget.json: the derivatives (Hz/m per K) and d ln A / d ln T (dimensionless)."""
+        """For budget.json: dA/dT in cm^-2 per K (A's unit in every output) and d ln A / d ln T.
+
+        ``a_hat``, ``a_ref_hat`` in Hz/m, as the derivatives inside.
+        """
         out = {
             "temperature_k": self.temperature_k,
             "temperature_u_k": self.temperature_u_k,
@@ -56,7 +60,7 @@ class DopplerSensitivity:
         if self.da_ref_dt is not None and a_ref_hat:
             out["da_ref_dt_hz_per_m_per_k"] = self.da_ref_dt
             out["dln_a_ref_dln_t"] = self.da_ref_dt * self.temperature_k / a_ref_hat
-        return out
+        return edge_keys(out)
 
 
 def area_temperature_derivative(spectra, profile: str, base, sample, step_k: float = STEP_K):

@@ -43,7 +43,9 @@ import numpy as np
 
 from bayes_tfcrds._version import __version__
 from bayes_tfcrds.core.constants import (
+    EDGE_UNITS,
     C,
+    edge_keys,
     line_area_to_cm2,
 )
 from bayes_tfcrds.core.fingerprint import content_hash
@@ -1281,7 +1283,8 @@ def _summary(
         "unconverged_decay_times": {
             f"{tc * 1e6:g}us": int(n) for tc, n in zip(dt.t_cuts, dt.fits.unconverged.sum(axis=0))
         },
-        "sensitivities_hz_per_m": {k: float(v) for k, v in sens_a.items()},
+        # dA/d(theta_H) in cm^-2 per unit of each H parameter, as the GUM tables' coefficients
+        "sensitivities_cm2": {k: EDGE_UNITS["Hz/m"][1] * float(v) for k, v in sens_a.items()},
         "h_propagation": (
             "each H draw through its H(f) into every tau, first order in H (function space)"
             if options.method == "tf-crds"
@@ -1705,13 +1708,13 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
     )
     budgets = {"line_area": budget_a, "intensity": budget_s, "ratio": budget_ratio}
     add_to_summary(summary, budgets, mc)
-    summary["instrument"] = {row.component.name: row.detail for row in instrument}
+    summary["instrument"] = {row.component.name: edge_keys(row.detail) for row in instrument}
     if refined is not None:
         summary["transfer_function"]["refinement"] = _refinement_summary(
             refined, (h_parts or {}).get("region")
         )
     if form is not None:
-        summary["transfer_function"]["model_form"] = form
+        summary["transfer_function"]["model_form"] = edge_keys(form)
         # the ring-downs may have asked for more parameters than the options named
         summary["transfer_function"]["refined"] = list(refined.free)
         summary["transfer_function"]["refined_asked"] = list(options.refine_free)
@@ -1719,7 +1722,7 @@ def _budget(inp: _Inputs, pool=None, on_run=None) -> BudgetResult:
     if ident is not None:
         summary["transfer_function"]["identification"] = ident.to_dict()
     _apply_gates(summary, options, runs, (h_parts or {}).get("weights"), refined)  # 10. gates
-    summary["priors"] = priors_summary(runs)
+    summary["priors"] = priors_summary(runs, EDGE_UNITS)  # line areas in cm^-2
     summary["doppler_width"] = doppler.to_dict(
         dt.lsq.line_area, None if a_ref is None else float(np.mean(a_ref))
     )

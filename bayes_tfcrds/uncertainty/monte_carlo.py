@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import line_area_to_cm2
+from bayes_tfcrds.core.constants import EDGE_UNITS, line_area_to_cm2
 from bayes_tfcrds.core.gum import Budget
 from bayes_tfcrds.core.mcm import (
     Empirical,
@@ -167,7 +167,7 @@ def _gum_entry(budget: Budget, scale: float = 1.0) -> dict:
 
 def edge_units(budget: Budget) -> Budget:
     """The budget as every output shows it: line areas (Hz/m inside) in cm^-2."""
-    return budget.in_units({"Hz/m": ("cm^-2", float(line_area_to_cm2(1.0)))})
+    return budget.in_units(EDGE_UNITS)
 
 
 def add_to_summary(summary: dict, budgets: dict, mc: BudgetMonteCarlo | None) -> None:

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import line_area_to_cm2
+from bayes_tfcrds.core.constants import EDGE_UNITS, edge_unit, line_area_to_cm2
 from bayes_tfcrds.core.gum import Budget, Component, format_uncertainty, format_value
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import RASTER_DPI, pyplot
@@ -257,7 +257,7 @@ def write_outputs(
     mcs = _monte_carlo_results(result)
     md = "\n\n".join(
         f"## {b.quantity}\n\n{edge_units(b).to_markdown()}"
-        + monte_carlo_markdown(mc, *_to_cm2(b.unit))
+        + monte_carlo_markdown(mc, *edge_unit(b.unit))
         for b, mc in zip(tables, mcs)
     )
     if "posterior" in summary:
@@ -320,7 +320,7 @@ def write_posteriors(result, out: Path) -> list:
     written = []
     for key, run in result.runs.items():
         path = out / f"posterior_{key}.nc"
-        run.save_netcdf(path)
+        run.save_netcdf(path, EDGE_UNITS)  # line areas in cm^-2, as every other file
         written.append(path)
     return written
 
@@ -512,10 +512,7 @@ def instrument_markdown(instrument: dict) -> str:
             by = f"beta = {d['beta']:.3g} +/- {d['u_beta']:.2g}"
         else:
             by = f"w = {d['weight_extended']:.3g}"
-        lines.append(
-            f"| {name} | {by} | {float(line_area_to_cm2(d['delta_a_hz_per_m'])):+.3g} | "
-            f"{d.get('finding') or '-'} |"
-        )
+        lines.append(f"| {name} | {by} | {d['delta_a_cm2']:+.3g} | {d.get('finding') or '-'} |")
     return "\n".join(lines)
 
 
@@ -652,18 +649,13 @@ CSV_COLUMNS = (
 )
 
 
-def _to_cm2(unit: str) -> tuple[str, float]:
-    """(edge unit, factor) of a budget unit: Hz/m -> cm^-2, others unchanged."""
-    return ("cm^-2", float(line_area_to_cm2(1.0))) if unit == "Hz/m" else (unit, 1.0)
-
-
 def _budget_rows(budget: Budget, mc) -> list:
     """The rows of one budget in budget.json's units: inputs, the GUM result, the MC result."""
-    out_unit, f_out = _to_cm2(budget.unit)
+    out_unit, f_out = edge_unit(budget.unit)
     rows = []
     shares = budget.shares()
     for c in budget.components:
-        unit, f_in = _to_cm2(c.unit)
+        unit, f_in = edge_unit(c.unit)
         rows.append(
             {
                 "row": c.name,

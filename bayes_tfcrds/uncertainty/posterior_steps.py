@@ -583,15 +583,17 @@ class RefinementRegion:
 
     ``prior`` None: the least-squares beat note (the usual case); else the sampled posterior's
     moments. ``run`` the MCMC run whose draws the ring-downs weigh, or None for the beat fit's
-    Laplace approximation (the ring-downs reject where the run's mass lies). ``first`` the
-    refinement already made at the least-squares point (reused when it stands). ``note`` says
-    why, for budget.json; None in the usual case.
+    Laplace approximation (the ring-downs reject where the run's mass lies). ``made`` the
+    refinement (and its records) already made in that region. ``moments`` the sampled moments'
+    prior and the refinement made about them, when they were compared (kept so that a fallback
+    to them does not make it again); ``note`` says why, for budget.json; None in the usual case.
     """
 
     prior: HPrior | None
     run: object
-    first: object
+    made: tuple
     note: str | None = None
+    moments: tuple | None = None
 
 
 def refinement_region(config, options, beat, post, run, free) -> RefinementRegion:
@@ -613,6 +615,7 @@ def refinement_region(config, options, beat, post, run, free) -> RefinementRegio
         return RefinementRegion(None, run, (first, idx))
     prior = sampled_beat_prior(post, run)
     second, idx2 = ring_down_update(config, options, beat, free, tuple(beat.free), prior=prior)
+    moments = (prior, (second, idx2))
     where = ", ".join(f"{n} = {getattr(second.params, n):.4g}" for n in away)
     if second.in_tension and not first.in_tension:
         c2 = second.tension_chi2
@@ -623,6 +626,7 @@ def refinement_region(config, options, beat, post, run, free) -> RefinementRegio
             f"the beat-note MCMC's mass lies in another description of |H| ({where}) that the "
             f"ring-downs reject (tension chi2 {c2[0]:.3g} for {c2[1]} dof); they accept the "
             "least-squares beat note, so H is drawn from its Laplace approximation there",
+            moments,
         )
     return RefinementRegion(
         prior,
@@ -630,6 +634,7 @@ def refinement_region(config, options, beat, post, run, free) -> RefinementRegio
         (second, idx2),
         f"the beat-note MCMC's mass lies away from the least-squares beat note ({where}): "
         "the refinement is linearised about the sampled posterior's moments",
+        moments,
     )
 
 
@@ -764,7 +769,7 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
         return beat, None, beat.params, draws, run, parts
     free = tuple(options.refine_free)
     region = refinement_region(config, options, beat, post, run, free)
-    prior, source, made, note = region.prior, region.run, region.first, region.note
+    prior, source, made, note = region.prior, region.run, region.made, region.note
     while True:
         if made is None:
             made = ring_down_update(config, options, beat, free, tuple(beat.free), prior=prior)
@@ -782,7 +787,11 @@ def h_posterior(config, options, rng, backend, progress, beat=None):
                     f"{note}; but those Laplace draws leave the prior's support, so the "
                     "refinement is linearised about the sampled posterior's moments after all"
                 )
-            prior, source = sampled_beat_prior(post, run), run
+            source = run
+            if region.moments is not None and free == tuple(options.refine_free):
+                prior, made = region.moments  # refinement_region made this refinement already
+            else:
+                prior = sampled_beat_prior(post, run)
             continue
         ratio = refined.information_ratio()
         if weights.passed or not ratio:
@@ -873,13 +882,14 @@ def line_mcmc(spectra, profile, gd, nu_ref, lsq, rng, options, backend, progress
     return _sample(post, p0, lsq.names, x0.size, rng, options, backend, progress, label)
 
 
-def priors_summary(runs: dict) -> dict:
+def priors_summary(runs: dict, units=None) -> dict:
     """The priors of every sampled posterior, read from the posteriors the samplers ran on.
 
-    {run key: {"posterior": its label, "parameters": [Prior.to_dict(), ...]}}; empty for the
-    Laplace path, which samples nothing (Gaussians about the least-squares fits).
+    {run key: {"posterior": its label, "parameters": [Prior.to_dict(units), ...]}} (``units``
+    shows the bounds in the outputs' unit, see :meth:`Prior.to_dict`); empty for the Laplace
+    path, which samples nothing (Gaussians about the least-squares fits).
     """
     return {
-        k: {"posterior": run.label, "parameters": [p.to_dict() for p in run.priors]}
+        k: {"posterior": run.label, "parameters": [p.to_dict(units) for p in run.priors]}
         for k, run in runs.items()
     }

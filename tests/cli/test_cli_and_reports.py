@@ -97,7 +97,7 @@ def test_fit_writes_one_row_per_point_and_t_cut(campaign, tmp_path):
     assert np.median([float(r["chi2_red"]) for r in rows]) < 1.2
 
 
-def test_linefit_json_and_crds_bias(campaign, tmp_path):
+def test_linefit_json_and_crds_bias(campaign, tmp_path, capsys):
     out_tf, out_c = tmp_path / "tf.json", tmp_path / "crds.json"
     assert (
         main(
@@ -138,6 +138,18 @@ def test_linefit_json_and_crds_bias(campaign, tmp_path):
     tf, cr = json.loads(out_tf.read_text()), json.loads(out_c.read_text())
     for key in ("line_area", "reference_area"):
         assert set(tf[key]) >= {"value", "u", "unit"} and tf[key]["unit"] == "cm^-2"
+    # one unit for A in every output of the command: the fit's parameter and the notes on stderr
+    par = tf["parameters"]["line_area"]
+    assert (par["value"], par["unit"], par["unit_si"]) == (
+        tf["line_area"]["value"],
+        "cm^-2",
+        "Hz/m",
+    )
+    assert par["u"] <= tf["line_area"]["u"]  # the line fit's u, without H's
+    assert tf["parameters"]["gamma0_hz"]["unit"] == "Hz"
+    assert "Hz/m" not in capsys.readouterr().err + out_tf.read_text().replace(
+        '"unit_si": "Hz/m"', ""
+    )
     assert set(tf["ratio"]) >= {"value", "u"}
     assert abs(tf["ratio"]["value"] - 1) < 4 * tf["ratio"]["u"]
     assert cr["ratio"]["value"] < 0.95  # D4: the letter's -8 %

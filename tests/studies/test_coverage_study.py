@@ -86,6 +86,14 @@ def test_coverage_and_ranks_within_binomial_limits(study_run):
     # 8 such checks at ~0.3 % false alarm each (normal approx.) keep the suite's false-fail rate ~2
     # %.
     # Ranks: chi-square over 5 bins (8 expected per bin) at alpha = 1 %.
+    # every recorded quantity states the unit of its truth, estimate and u; A's is SI (the truth
+    # in the bundle's /truth is Hz/m), S's cm/molecule like the drawn intensity
+    assert set(numbers["units"]) == {q for r in recs for q in r["quantities"]} - {"S (U, MC)"}
+    assert numbers["units"]["A"] == "Hz/m" and numbers["units"]["S (u_c)"] == "cm/molecule"
+    for r in recs:  # the letter's lines: A ~ 4e5 Hz/m (1.3e-7 cm^-2: 3e12 times smaller)
+        assert 1e3 < r["quantities"]["A"]["truth"] < 1e8
+        s_true = r["quantities"]["S (u_c)"]["truth"]
+        assert s_true == pytest.approx(r["draw"]["intensity_cm_per_molecule"], rel=1e-12)
     for q in cs.QUANTITIES:
         s = cs.summarise(recs, q, bins=5)
         assert s["n"] == N

@@ -89,7 +89,7 @@ def test_a_rational_chain_keeps_n_r_2_and_todays_numbers(preset):
     off = run_budget(bundle, config, replace(fast, free_order=False), np.random.default_rng(3))
     assert not on.summary["transfer_function"]["n_r_sampled"]
     assert on.samples["h_draws"].shape[1] == 4
-    for key in ("line_area", "intensity", "ratio", "components", "sensitivities_hz_per_m"):
+    for key in ("line_area", "intensity", "ratio", "components", "sensitivities_cm2"):
         assert on.summary[key] == off.summary[key], key
     np.testing.assert_array_equal(on.samples["a_total"], off.samples["a_total"])
 

@@ -84,12 +84,14 @@ def test_the_region_is_the_one_the_ring_downs_accept(
     assert len(calls) == 2 and calls[0] is None and "MCMC" in calls[1].source
     if chosen == "laplace":
         assert region.run is None and region.prior is None
-        assert region.first[0].params is OPTIMUM and region.first[1] == "idx1"
+        assert region.made[0].params is OPTIMUM and region.made[1] == "idx1"
         assert "reject" in region.note and "331" in region.note
     else:
         assert region.run is run and region.prior is calls[1]
-        assert region.first[1] == "idx2" and region.first[0].params.a_r == pytest.approx(-0.3711)
+        assert region.made[1] == "idx2" and region.made[0].params.a_r == pytest.approx(-0.3711)
         assert "sampled posterior's moments" in region.note
+    # either way the refinement about the sampled moments is kept for a fallback to them
+    assert region.moments[0] is calls[1] and region.moments[1][1] == "idx2"
 
 
 def test_a_run_with_its_mass_at_the_optimum_is_refined_once_as_before(monkeypatch):
@@ -105,9 +107,50 @@ def test_a_run_with_its_mass_at_the_optimum_is_refined_once_as_before(monkeypatc
     beat = SimpleNamespace(params=at_mass, free=NAMES)
     region = ps.refinement_region(None, None, beat, post, run, ("f_c_hz",))
     assert calls == [None] and region.run is run and region.prior is None and region.note is None
+    assert region.moments is None
     # without a run (Laplace posterior) there is nothing to compare: the optimum, as before
     region = ps.refinement_region(None, None, beat, post, None, ("f_c_hz",))
     assert region.run is None and region.prior is None and region.note is None
+
+
+def test_laplace_draws_outside_the_support_fall_back_to_the_moments_refined_once(monkeypatch):
+    """The ring-downs chose the optimum's Laplace approximation, whose draws all leave the
+    prior's support: H falls back to the sampled moments, with the refinement refinement_region
+    made about them (not made a third time), and budget.json's note says so."""
+    from bayes_tfcrds.fit.h_calibration import AnalysisError
+    from bayes_tfcrds.uncertainty.line_budget import BudgetOptions
+
+    post, run, nat = _ridge_run()
+    run = SimpleNamespace(passed=True, flat=lambda: None)
+    post = SimpleNamespace(**vars(post), sample_names=NAMES)
+    beat = SimpleNamespace(params=OPTIMUM, free=NAMES)
+    calls = []
+
+    def update(config, options, beat, free, sens_names=(), noise_v=None, prior=None):
+        calls.append(prior)
+        if prior is None:
+            out = _refined(OPTIMUM, chi2=2.6)
+        else:
+            out = _refined(TFParams(**dict(zip(NAMES, map(float, prior.mean)))), True, 331.0)
+        return SimpleNamespace(**vars(out), information_ratio=dict), f"idx{len(calls)}"
+
+    def joint(beat, post, source, refined, options, rng):
+        if source is None:  # the Laplace approximation's draws: none inside the support
+            raise AnalysisError("8000 of 8000 joint draws outside the prior's support")
+        return np.zeros((4, 4)), np.zeros((4, 4)), SimpleNamespace(passed=True)
+
+    monkeypatch.setattr(ps, "_beat_posterior", lambda *a: (beat, post, None, None))
+    monkeypatch.setattr(ps, "h_predictions", lambda *a: (None, ()))
+    monkeypatch.setattr(ps, "_sample", lambda *a, **k: run)
+    monkeypatch.setattr(ps, "ring_down_update", update)
+    monkeypatch.setattr(ps, "_joint_draws", joint)
+    monkeypatch.setattr(ps, "posterior_centre", lambda params, draws, names: params)
+    options = BudgetOptions()  # refines f_c, as the budget does
+    config = SimpleNamespace(ringdowns=None)
+    _, refined, _, _, got_run, parts = ps.h_posterior(config, options, None, None, False)
+    assert len(calls) == 2 and calls[0] is None and "MCMC" in calls[1].source
+    assert refined.params.a_r == pytest.approx(-0.3711) and parts["records"] == "idx2"
+    assert got_run is run and "reject" in parts["region"] and "after all" in parts["region"]
 
 
 @pytest.mark.slow
