@@ -391,6 +391,7 @@ def _bundle_line(bundle, config, args):
 def _spectrum_line(args):
     """linefit --spectrum: the line fit of a lab's tau(nu) or alpha(nu) and its budget (no H)."""
     from bayes_tfcrds.bundle.labfolder import read_lab_spectrum
+    from bayes_tfcrds.core.constants import EDGE_UNITS
     from bayes_tfcrds.fit.line_analysis import analyse_spectrum
     from bayes_tfcrds.uncertainty.spectrum_budget import spectrum_budget
 
@@ -400,8 +401,8 @@ def _spectrum_line(args):
     )
     budget = spectrum_budget(result, spectrum.sample)
     _say(f"note: {result.input_note}: no H, no t_cut; the budget holds the fit and the line shape")
-    print(budget.budget_a.to_markdown())
-    print(budget.budget_s.to_markdown())
+    for b in (budget.budget_a, budget.budget_s):  # A in cm^-2, as in linefit.json
+        print(b.in_units(EDGE_UNITS).to_markdown())
     return result, dict(result.to_dict(), budget=budget.to_dict())
 
 

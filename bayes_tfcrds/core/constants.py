@@ -49,6 +49,19 @@ def edge_unit(unit: str) -> tuple[str, float]:
     return EDGE_UNITS.get(unit, (unit, 1.0))
 
 
+def edge_entry(value_si, u_si, unit_si: str) -> dict:
+    """{value, u, unit} in the unit every output shows the quantity in.
+
+    A line area in cm^-2, with its SI twin in ``value_si``, ``u_si``, ``unit_si``; any other
+    quantity as it is (SI).
+    """
+    unit, f = edge_unit(unit_si)
+    out = {"value": f * float(value_si), "u": f * float(u_si), "unit": unit}
+    if unit != unit_si:
+        out.update(value_si=float(value_si), u_si=float(u_si), unit_si=unit_si)
+    return out
+
+
 def edge_keys(record: dict) -> dict:
     """``record`` for an output: each SI line-area entry (a key with ``hz_per_m``) in cm^-2.
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from bayes_tfcrds.core.constants import (
-    edge_unit,
+    edge_entry,
     intensity_to_cm_per_molecule,
     line_area_to_cm2,
     number_density,
@@ -45,21 +45,8 @@ def doppler_of(sample) -> float:
     return float(doppler_hwhm_hz(sample.nu0_hz, sample.temperature_k, sample.mass_u))
 
 
-def _entry(value_si, u_si, unit_si: str) -> dict:
-    """{value, u, unit} in the unit every output shows the quantity in.
-
-    A line area in cm^-2, with its SI twin in value_si, u_si, unit_si; other quantities as they
-    are (SI).
-    """
-    unit, f = edge_unit(unit_si)
-    out = {"value": f * float(value_si), "u": f * float(u_si), "unit": unit}
-    if unit != unit_si:
-        out.update(value_si=float(value_si), u_si=float(u_si), unit_si=unit_si)
-    return out
-
-
 def _area_entry(value_si, u_si):
-    return _entry(value_si, u_si, "Hz/m")
+    return edge_entry(value_si, u_si, "Hz/m")
 
 
 def check_overlap(config):
@@ -266,7 +253,7 @@ class LineAnalysis:
                 lf.line_area, self.line_area_u_si, n, self.temperature_k, self.u_note
             ),
             "parameters": {  # A in cm^-2 as above (SI in value_si, u_si), the rest in SI
-                name: _entry(v, np.sqrt(lf.cov[i, i]), parameter_unit(name, "absorption"))
+                name: edge_entry(v, np.sqrt(lf.cov[i, i]), parameter_unit(name, "absorption"))
                 for i, (name, v) in enumerate(zip(lf.names, lf.values))
             },
             "correlation": {

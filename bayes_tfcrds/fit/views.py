@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import line_area_to_cm2
+from bayes_tfcrds.core.constants import edge_entry, line_area_to_cm2
 from bayes_tfcrds.output.notebook import (
     LEGEND_ABOVE,
     data_and_residual_axes,
@@ -33,6 +33,13 @@ def _json(x):
     """A float for JSON: NaN and inf become None."""
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+def _strict_entry(value, u, unit: str) -> dict:
+    """:func:`~bayes_tfcrds.core.constants.edge_entry` with NaN and inf as None (JSON)."""
+    return {
+        k: _json(v) if isinstance(v, float) else v for k, v in edge_entry(value, u, unit).items()
+    }
 
 
 def _json_array(a):
@@ -384,12 +391,8 @@ def line_fit_dict(lf) -> dict:
     a, ua = lf.line_area_cm2()
     return {
         "profile": lf.profile,
-        "parameters": {
-            n: {
-                "value": _json(lf.value(n)),
-                "u": _json(lf.stderr(n)),
-                "unit": parameter_unit(n, _kind_of(lf, n)),
-            }
+        "parameters": {  # A in cm^-2 (SI twin in value_si, u_si), the rest in SI
+            n: _strict_entry(lf.value(n), lf.stderr(n), parameter_unit(n, _kind_of(lf, n)))
             for n in lf.names
         },
         "line_area_cm2": {"value": _json(a), "u": _json(ua), "unit": "cm^-2"},

@@ -51,7 +51,8 @@ DEMANDED_WEIGHT = 0.5
 class InstrumentRow:
     """One instrument row: its component of u(A) (Hz/m) and what sized it.
 
-    ``detail`` holds the numbers behind the row (SI units, keys say which), for budget.json.
+    ``detail`` holds the numbers behind the row (SI units, keys say which); budget.json shows it
+    with A in cm^-2 (:func:`~bayes_tfcrds.core.constants.edge_keys`).
     """
 
     component: Component

@@ -1,7 +1,8 @@
 """The files of a budget run: budget.json, GUM tables, decay-time posteriors, netCDF, corners.
 
-One unit per quantity in every file: line areas A, A_ref in cm^-2 (SI Hz/m in ``*_si`` fields and
-columns), S(T_ref) in cm/molecule, A/A_ref in 1. budget.json's structure (for a budget that
+One unit per quantity in every file: line areas A, A_ref in cm^-2 (SI Hz/m only as labelled
+twins: ``*_si`` fields and columns, a prior's ``unit_si``, a netCDF variable's ``units_sampled``),
+S(T_ref) in cm/molecule, A/A_ref in 1. budget.json's structure (for a budget that
 imports this one, see :func:`component_from_result`) is described in data/FORMAT.md, section
 "Outputs of `budget`".
 """

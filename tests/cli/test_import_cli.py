@@ -84,7 +84,11 @@ def test_linefit_spectrum_recovers_a_known_area(tmp_path, capsys):
         "line-shape model (voigt vs sdvp)",
         "temperature T (Doppler width of the line fit)",
     ]
-    assert budget["line_area"]["value"] == got["value_si"]
+    # the budget's A is linefit.json's, in the same unit (cm^-2; SI only in the *_si twins)
+    assert budget["line_area"]["unit"] == got["unit"] == "cm^-2"
+    assert budget["line_area"]["value"] == pytest.approx(got["value"], rel=1e-14)
+    # its u_c holds the fit's u and more rows (line shape, T): not below it, nor 1e3 times it
+    assert 0.999 * got["u"] <= budget["line_area"]["combined_u"] < 1e3 * got["u"]
     # S(296 K) two ways: the budget (reference_intensity_from_area) and the line fit's entry
     # (A/N times intensity_ratio); equal up to rounding when both are right
     assert budget["intensity"]["value"] == pytest.approx(res["intensity"]["value"], rel=1e-12)
