@@ -391,7 +391,7 @@ def _bundle_line(bundle, config, args):
 def _spectrum_line(args):
     """linefit --spectrum: the line fit of a lab's tau(nu) or alpha(nu) and its budget (no H)."""
     from bayes_tfcrds.bundle.labfolder import read_lab_spectrum
-    from bayes_tfcrds.core.constants import EDGE_UNITS
+    from bayes_tfcrds.core.constants import edge_budget
     from bayes_tfcrds.fit.line_analysis import analyse_spectrum
     from bayes_tfcrds.uncertainty.spectrum_budget import spectrum_budget
 
@@ -402,7 +402,7 @@ def _spectrum_line(args):
     budget = spectrum_budget(result, spectrum.sample)
     _say(f"note: {result.input_note}: no H, no t_cut; the budget holds the fit and the line shape")
     for b in (budget.budget_a, budget.budget_s):  # A in cm^-2, as in linefit.json
-        print(b.in_units(EDGE_UNITS).to_markdown())
+        print(edge_budget(b).to_markdown())
     return result, dict(result.to_dict(), budget=budget.to_dict())
 
 
@@ -510,11 +510,11 @@ def _budget_options(args):
 
 def cmd_budget(args) -> int:
     from bayes_tfcrds.bundle.reader import load_truth
+    from bayes_tfcrds.core.constants import edge_budget
     from bayes_tfcrds.fit.h_calibration import AnalysisError
     from bayes_tfcrds.fit.line_analysis import LineFitError
     from bayes_tfcrds.fit.refine import tension_lines
     from bayes_tfcrds.uncertainty.line_budget import run_budget, side_pool
-    from bayes_tfcrds.uncertainty.monte_carlo import edge_units
     from bayes_tfcrds.uncertainty.outputs import (
         corner_job,
         discard_started,
@@ -583,7 +583,7 @@ def cmd_budget(args) -> int:
             "u(tau) and every ring-down likelihood use noise_v sqrt(kappa) (budget.md, "
             "'Ring-down noise')"
         )
-    for line in edge_units(res.budget_a).to_markdown().splitlines():  # A in cm^-2, as in .json
+    for line in edge_budget(res.budget_a).to_markdown().splitlines():  # A in cm^-2, as in .json
         _result(line)
     if res.refined is not None:
         for line in tension_lines(res.refined):

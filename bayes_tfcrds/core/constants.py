@@ -62,6 +62,14 @@ def edge_entry(value_si, u_si, unit_si: str) -> dict:
     return out
 
 
+def edge_budget(budget):
+    """A GUM budget (:class:`~bayes_tfcrds.core.gum.Budget`) as every output shows it.
+
+    Its line-area rows and result (Hz/m inside) in cm^-2; every other quantity as it is.
+    """
+    return budget.in_units(EDGE_UNITS)
+
+
 def edge_keys(record: dict) -> dict:
     """``record`` for an output: each SI line-area entry (a key with ``hz_per_m``) in cm^-2.
 

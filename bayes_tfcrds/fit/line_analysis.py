@@ -45,10 +45,6 @@ def doppler_of(sample) -> float:
     return float(doppler_hwhm_hz(sample.nu0_hz, sample.temperature_k, sample.mass_u))
 
 
-def _area_entry(value_si, u_si):
-    return edge_entry(value_si, u_si, "Hz/m")
-
-
 def check_overlap(config):
     """Refuse a CMDS reference that does not cover the ring-down spectrum's frequency range.
 
@@ -244,7 +240,7 @@ class LineAnalysis:
             "t_cut_s": None if self.t_cut_s is None else float(self.t_cut_s),
             "profile": self.profile,
             "line_area": dict(
-                _area_entry(lf.line_area, self.line_area_u_si),
+                edge_entry(lf.line_area, self.line_area_u_si, "Hz/m"),
                 u_holds=self.u_note,
                 u_fit_si=float(lf.line_area_u),
                 u_h_si=self.line_area_u_h_si,
@@ -292,7 +288,7 @@ class LineAnalysis:
             out["reference_area"] = None
             out["ratio"] = None
         else:
-            out["reference_area"] = _area_entry(ref.line_area, ref.line_area_u)
+            out["reference_area"] = edge_entry(ref.line_area, ref.line_area_u, "Hz/m")
             out["ratio"] = {"value": self.ratio.value, "u": self.ratio.u}
             out["reference_chi2_red"] = float(ref.chi2_red)
             out["reference_unphysical_shape"] = list(ref.unphysical)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import EDGE_UNITS
+from bayes_tfcrds.core.constants import edge_budget
 from bayes_tfcrds.output.plotting import legend_above, literal, pyplot
 from bayes_tfcrds.studies.common import parallel_map
 from bayes_tfcrds.uncertainty.outputs import PRIOR_COLUMNS, prior_rows
@@ -29,7 +29,7 @@ def _budget_config(args):
     rng = np.random.default_rng([seed, sum(map(ord, name))])
     res = run_budget(bundle, bundle.configs[name], opts, rng)
     # the GUM tables with A in cm^-2, as the report's summary and budget.json show it
-    a, s = (b.in_units(EDGE_UNITS).to_dict() for b in (res.budget_a, res.budget_s))
+    a, s = (edge_budget(b).to_dict() for b in (res.budget_a, res.budget_s))
     return name, res.summary, a, s
 
 

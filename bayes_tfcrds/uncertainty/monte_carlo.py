@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import EDGE_UNITS, line_area_to_cm2
+from bayes_tfcrds.core.constants import edge_budget, line_area_to_cm2
 from bayes_tfcrds.core.gum import Budget
 from bayes_tfcrds.core.mcm import (
     Empirical,
@@ -165,11 +165,6 @@ def _gum_entry(budget: Budget, scale: float = 1.0) -> dict:
     }
 
 
-def edge_units(budget: Budget) -> Budget:
-    """The budget as every output shows it: line areas (Hz/m inside) in cm^-2."""
-    return budget.in_units(EDGE_UNITS)
-
-
 def add_to_summary(summary: dict, budgets: dict, mc: BudgetMonteCarlo | None) -> None:
     """GUM dof, k, U and the Monte Carlo result into the budget.json entries, in their units.
 
@@ -191,7 +186,7 @@ def add_to_summary(summary: dict, budgets: dict, mc: BudgetMonteCarlo | None) ->
         res = None if mc is None else getattr(mc, key)
         entry["monte_carlo"] = None if res is None else _entry(res, scale, unit)
     summary["gum_budgets"] = {
-        key: edge_units(b).to_dict() for key, b in budgets.items() if b is not None
+        key: edge_budget(b).to_dict() for key, b in budgets.items() if b is not None
     }
     if mc is not None:
         summary["monte_carlo_inputs"] = mc.inputs

@@ -20,12 +20,11 @@ from pathlib import Path
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import EDGE_UNITS, edge_unit, line_area_to_cm2
+from bayes_tfcrds.core.constants import EDGE_UNITS, edge_budget, edge_unit, line_area_to_cm2
 from bayes_tfcrds.core.gum import Budget, Component, format_uncertainty, format_value
 from bayes_tfcrds.output.files import atomic_path, atomic_write_text, clean_dead_writers
 from bayes_tfcrds.output.plotting import RASTER_DPI, pyplot
 from bayes_tfcrds.uncertainty.line_budget import POSTERIORS, BudgetResult
-from bayes_tfcrds.uncertainty.monte_carlo import edge_units
 
 # sampled parameter -> (symbol, unit, factor from SI to that unit, /truth entry or None). The
 # samplers work in SI (and in log for f_c, f_r, Gamma_r); a corner plot shows what a
@@ -257,7 +256,7 @@ def write_outputs(
     )
     mcs = _monte_carlo_results(result)
     md = "\n\n".join(
-        f"## {b.quantity}\n\n{edge_units(b).to_markdown()}"
+        f"## {b.quantity}\n\n{edge_budget(b).to_markdown()}"
         + monte_carlo_markdown(mc, *edge_unit(b.unit))
         for b, mc in zip(tables, mcs)
     )

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import EDGE_UNITS
+from bayes_tfcrds.core.constants import edge_budget
 from bayes_tfcrds.core.gum import Budget, Component, dof_from_relative_u
 from bayes_tfcrds.fit.line import LineFit, fit_line
 from bayes_tfcrds.fit.line_analysis import SPECTRUM_LEVEL, LineAnalysis, doppler_of
@@ -47,8 +47,8 @@ class SpectrumBudget:
         """The JSON record: both budgets (A in cm^-2, as every output shows it) and the label."""
         return {
             "input": self.note,
-            "line_area": self.budget_a.in_units(EDGE_UNITS).to_dict(),
-            "intensity": self.budget_s.in_units(EDGE_UNITS).to_dict(),
+            "line_area": edge_budget(self.budget_a).to_dict(),
+            "intensity": edge_budget(self.budget_s).to_dict(),
         }
 
 

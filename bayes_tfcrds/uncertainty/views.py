@@ -11,7 +11,7 @@ import textwrap
 
 import numpy as np
 
-from bayes_tfcrds.core.constants import EDGE_UNITS, line_area_to_cm2
+from bayes_tfcrds.core.constants import edge_budget, line_area_to_cm2
 from bayes_tfcrds.output.notebook import fmt, html_table, new_figure, text_table
 from bayes_tfcrds.output.plotting import house_style
 
@@ -101,7 +101,7 @@ def budget_dict(result) -> dict:
     """The ``budget.json`` summary plus the three GUM budgets (A in cm^-2 as in the summary)."""
     out = dict(result.summary)
     shown = [
-        None if b is None else b.in_units(EDGE_UNITS).to_dict()
+        None if b is None else edge_budget(b).to_dict()
         for b in (result.budget_a, result.budget_s, result.budget_ratio)
     ]
     out["budgets"] = dict(zip(("line_area", "intensity", "ratio"), shown))

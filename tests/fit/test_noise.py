@@ -239,9 +239,13 @@ def test_tau_pulls_have_unit_sd_under_white_and_coloured_noise(noise, coloured):
     after, before = np.concatenate(after), np.concatenate(before)
     # transients the clip heuristic flags (10 averages repeat a value) are not fitted
     assert np.isfinite(after).mean() > 0.98
-    sd = np.std(after[np.isfinite(after)])
+    ok = after[np.isfinite(after)]
+    sd = np.std(ok)
     # sampling sd of an sd over 606 draws is 0.029: the band 1 +/- 0.1 is 3.5 of them
     assert sd == pytest.approx(1.0, abs=0.1)
+    # the fits are independent (one transient each): a mean beyond 4 standard errors (0.16)
+    # is a bias of tau under this noise, not chance
+    assert abs(np.mean(ok)) < 4 * sd / np.sqrt(ok.size)
     if coloured:  # the stated-noise u(tau) was wrong: what the correction is for
         assert np.std(before[np.isfinite(before)]) > 1.3
 
