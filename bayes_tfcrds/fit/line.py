@@ -73,6 +73,9 @@ class LineFit:
     at_bound: tuple = ()
     unphysical: tuple = ()
     physical_bounds: bool = False  # fitted with Gamma2, nu_VC >= 0 (``fit_line``'s option)
+    # d((model - y)/u)/d theta at the solution: the Jacobian the covariance was made from, kept
+    # so that propagation (uncertainty.propagate.line_gain) uses the same one
+    jacobian: np.ndarray | None = field(default=None, repr=False)
 
     def value(self, name):
         return float(self.values[self.names.index(name)])
@@ -360,4 +363,5 @@ def fit_line(
         at_bound=at_bound,
         unphysical=tuple(n for n, v in zip(names, theta) if n in PHYSICAL_NONNEGATIVE and v < 0),
         physical_bounds=bool(physical_bounds),
+        jacobian=jac,
     )

@@ -82,6 +82,7 @@ from bayes_tfcrds.uncertainty.line_shape_models import (
     DEFAULT_CANDIDATES,
     ModelAverage,
     average_candidates,
+    averaged_area_gain,
     fit_candidates,
 )
 from bayes_tfcrds.uncertainty.monte_carlo import (
@@ -101,7 +102,6 @@ from bayes_tfcrds.uncertainty.posterior_steps import (
 from bayes_tfcrds.uncertainty.propagate import (
     TauKernels,
     h_change,
-    line_gain,
     tau_h_kernels,
     tau_influence,
     tau_sensitivities,
@@ -496,11 +496,11 @@ def _line_posterior(inp: _Inputs, dt: _DecayTimes, runs: dict) -> np.ndarray:
 def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, names=BEAT_FREE) -> _HSensitivity:
     """Step 4: the sensitivity of A to H.
 
-    dA/dH(f) through every tau (implicit-function derivatives in the function H, then the line
-    fit's gain), and dA/dtheta_H from the same chain rule with dH/dtheta (theta: ``names``).
+    dA/dH(f) through every tau (implicit-function derivatives in the function H, then the gain
+    of the reported, model-averaged A), and dA/dtheta_H from the same chain rule with dH/dtheta
+    (theta: ``names``).
     """
     options, rd, fits, j0 = inp.options, inp.config.ringdowns, dt.fits, dt.j0
-    ia = dt.lsq.names.index("line_area")
     ok = (
         np.isfinite(fits.tau_s[:, j0])
         & np.isfinite(fits.tau_u_s[:, j0])
@@ -517,7 +517,7 @@ def _h_sensitivity(inp: _Inputs, dt: _DecayTimes, h_star, names=BEAT_FREE) -> _H
         rows_of=good,
     )
     s_tau = tau_sensitivities(rd.time_s, rd.signal_v, names=names, **rows)
-    k_gain = line_gain(dt.lsq)[ia]  # dA/d(1/(c tau))
+    k_gain = averaged_area_gain(dt.shapes, dt.lsq)  # dA_bar/d(1/(c tau)): the reported A
     dalpha_dtau = -1.0 / (C * fits.tau_s[good, j0] ** 2)
     grad_a = (k_gain * dalpha_dtau) @ s_tau  # dA/dtheta_H (Hz/m per unit)
     kernel = tau_h_kernels(rd.time_s, **rows).combine(k_gain * dalpha_dtau)

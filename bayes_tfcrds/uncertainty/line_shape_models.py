@@ -34,6 +34,7 @@ import numpy as np
 
 from bayes_tfcrds.core.constants import line_area_to_cm2
 from bayes_tfcrds.fit.line import DEFAULT_SHAPE_FREE, LineFit, fit_line
+from bayes_tfcrds.uncertainty.propagate import line_gain
 
 
 @dataclass(frozen=True)
@@ -71,9 +72,16 @@ class CandidateFit:
 
     @property
     def failed(self) -> bool:
-        """No fit, or one without a finite chi2 or A (the profile undefined where it went)."""
+        """No fit, or one without a finite chi2, A or covariance.
+
+        The profile is undefined where the search went, or next to where it ended (HTP +
+        Delta2 with Gamma2 ~ 0: a step to Gamma2 < 0 leaves the profile's domain, so neither
+        u(A) nor what H does to A is defined for that fit).
+        """
         return self.fit is None or not (
-            np.isfinite(self.fit.chi2) and np.isfinite(self.fit.line_area)
+            np.isfinite(self.fit.chi2)
+            and np.isfinite(self.fit.line_area)
+            and np.all(np.isfinite(self.fit.cov))
         )
 
     @property
@@ -213,6 +221,8 @@ def fit_candidates(spec, gd: float, nu_ref: float, labels=DEFAULT_CANDIDATES, pr
             one = CandidateFit(cand, same[0] if same else _fit_from(spec, gd, nu_ref, cand, done))
         except ValueError as exc:  # non-finite residuals or Jacobian where the search went
             one = CandidateFit(cand, None, error=f"fit failed: {exc}")
+        if one.failed and not one.error:
+            one = replace(one, error="fit failed: covariance undefined at the solution")
         if not one.failed:
             done.append(one.fit)
         out.append(one)
@@ -233,6 +243,27 @@ def _fit_from(spec, gd, nu_ref, cand: ShapeCandidate, done) -> LineFit:
     start.setdefault("eta", 0.0)
     start.setdefault("delta2_hz", 0.0)
     return fit_line([spec], cand.profile, gd, nu_ref, shape_free=cand.shape_free, start=start)
+
+
+def averaged_area_gain(average: ModelAverage, primary: LineFit) -> np.ndarray:
+    """dA_bar/dy (Hz/m per unit of y, one per spectral point): the gain of the reported A.
+
+    The budget reports the averaged A_bar = sum_k w_k A_k, so what a shift of the spectrum
+    (every decay time moved by H) does to it is sum_k w_k dA_k/dy, the weights held (their
+    change is second order at the optima). Profiles differ in it: where the narrowing profiles
+    carry the weight, a shift concentrated at the line centre moves their A more than the
+    Voigt's, and propagating H through the primary profile alone would understate u(A) by that
+    ratio. ``primary``'s gain when no candidate carries weight.
+    """
+    live = [c for c in average.candidates if c.weight > 0 and not c.failed]
+    total = sum(c.weight for c in live)
+    if not live or total <= 0:
+        return _area_gain(primary)
+    return sum((c.weight / total) * _area_gain(c.fit) for c in live)
+
+
+def _area_gain(fit: LineFit) -> np.ndarray:
+    return line_gain(fit)[fit.names.index("line_area")]
 
 
 def average_candidates(fits, rng) -> ModelAverage:

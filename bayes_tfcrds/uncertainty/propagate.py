@@ -237,11 +237,18 @@ def line_gain(line_fit) -> np.ndarray:
 
     y are the fitted spectrum values concatenated over its spectra, in their own units; the
     gain is that of weighted least squares at the solution (parameters held at a bound get
-    zero rows, as in the fit's covariance).
+    zero rows, as in the fit's covariance). It uses the Jacobian the fit made its covariance
+    from, so that the noise propagation K W^-1 K^T is that covariance. A Jacobian made here
+    again, with steps relative to the values, failed for a parameter at 0 (the HTP's eta where
+    the data need none: a 1e-36 step, round-off, a gain 600 times the fit's own u(A)); it is
+    only made for a fit that does not carry its own.
     """
     spectra = line_fit.spectra
-    theta = np.asarray(line_fit.values, float)
     u = np.concatenate([s.u for s in spectra])
+    if line_fit.jacobian is not None:
+        # K = cov J^T W: the stored Jacobian is J / u
+        return line_fit.cov @ (line_fit.jacobian / u[:, None]).T
+    theta = np.asarray(line_fit.values, float)
     model = model_of(line_fit)
     scale = np.array(
         [
