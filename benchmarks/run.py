@@ -28,7 +28,6 @@ from scipy import optimize
 
 from bayes_tfcrds.core.constants import line_area_from_cm2
 from bayes_tfcrds.fit.h_calibration import calibrate
-from bayes_tfcrds.fit.line import fit_line
 from bayes_tfcrds.fit.line_analysis import doppler_of
 from bayes_tfcrds.fit.ringdown import fit_ringdowns
 from bayes_tfcrds.fit.spectrum import crds_spectrum
@@ -166,11 +165,20 @@ def main(argv=None):
     draws = res.samples["h_draws"]
     pick = np.random.default_rng(args.seed).choice(draws.shape[0], 6, replace=False)
 
+    from bayes_tfcrds.uncertainty.line_shape_models import fit_candidates
+
+    weights = {
+        c["label"]: c["weight"]
+        for c in res.summary["line_shape_models"]["candidates"]
+        if c["weight"] > 0
+    }
+
     def area(p):
+        """The reported A at H = p: the weighted candidates refitted, at the budget's weights."""
         f = fit_ringdowns(rd, [4e-6], "tf-crds", p, "extinction")
-        return fit_line(
-            [crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])], "qsdhcp", gd, b.sample.nu0_hz
-        ).line_area
+        spec = crds_spectrum(f.nu_hz, f.tau_s[:, 0], f.tau_u_s[:, 0])
+        fits = fit_candidates(spec, gd, b.sample.nu0_hz, tuple(weights))
+        return sum(weights[c.candidate.label] * c.line_area for c in fits) / sum(weights.values())
 
     a0 = area(h_star)
     shifts = res.samples["a_shift_h"]  # first order in H(f), as the budget propagates each draw
