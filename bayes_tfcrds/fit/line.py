@@ -69,13 +69,13 @@ class LineFit:
     fixed: dict
     spectra: tuple = field(repr=False)
     residuals: tuple = field(repr=False)
+    # d((model - y)/u)/d theta at the solution (n_y, n_par): the Jacobian the covariance was made
+    # from, kept so that propagation (uncertainty.propagate.line_gain) uses the same one
+    jacobian: np.ndarray = field(repr=False)
     scaled: bool = False
     at_bound: tuple = ()
     unphysical: tuple = ()
     physical_bounds: bool = False  # fitted with Gamma2, nu_VC >= 0 (``fit_line``'s option)
-    # d((model - y)/u)/d theta at the solution: the Jacobian the covariance was made from, kept
-    # so that propagation (uncertainty.propagate.line_gain) uses the same one
-    jacobian: np.ndarray | None = field(default=None, repr=False)
 
     def value(self, name):
         return float(self.values[self.names.index(name)])

@@ -485,7 +485,8 @@ def _rational_chain(tf: TFParams):
 
 #: columns of the decay-time table (``RingdownFits.to_csv``, ``bayes-tfcrds fit``)
 CSV_COLUMNS = (
-    "nu_hz", "t_cut_s", "tau_s", "tau_u_s", "tau_u_noise_s", "tau_u_h_s", "chi2_red", "status",
+    "nu_hz", "t_cut_s", "tau_s", "tau_u_s", "tau_u_noise_s", "tau_u_h_s", "chi2_red", "noise_kappa",
+    "status",
 )  # fmt: skip
 
 
@@ -497,6 +498,12 @@ class RingdownFits:
     ``tau_u_s`` is the fit's own u(tau) (ring-down noise, given H), the weight of a line fit;
     ``tau_u_h_s`` the part the uncertainty of H adds (fully correlated between points), when
     computed; :attr:`tau_u_total_s` both, which the CSV and ``to_dict`` call ``tau_u``.
+
+    ``chi2_red`` is the residual sum of squares over the stated per-sample noise (the bundle's
+    noise_v), whatever the fits weighted with: ~1 when the bundle states its noise level, white
+    or coloured. ``noise_kappa`` (m,) is the variance factor of tau the noise colour implies
+    (``RingdownData.noise_kappa``; None: white, 1): the fits weighted with noise_v sqrt(kappa),
+    so ``tau_u_s`` holds it, and a chi2 at those weights would read ~1/kappa.
     """
 
     nu_hz: np.ndarray
@@ -523,6 +530,7 @@ class RingdownFits:
     # u(tau) from the uncertainty of H (s), points x t_cuts, when computed
     # (:func:`bayes_tfcrds.uncertainty.decay_times.h_part_of_tau_u`); tau_u_s is the noise's
     tau_u_h_s: np.ndarray | None = None
+    noise_kappa: np.ndarray | None = None
 
     def with_h_uncertainty(self, tau_u_h_s) -> RingdownFits:
         """These fits with the H part of u(tau) (s, shaped like tau_s): the CSV's total u."""
@@ -543,6 +551,13 @@ class RingdownFits:
         else:
             u_h = np.where(self.method == "tf-crds", np.nan, 0.0)
         return np.hypot(self.tau_u_s, u_h)
+
+    @property
+    def kappa_per_point(self) -> np.ndarray:
+        """The variance factor of tau per spectral point (m,): noise_kappa, 1 where white."""
+        if self.noise_kappa is None:
+            return np.ones(np.shape(self.nu_hz))
+        return np.asarray(self.noise_kappa, float)
 
     def converged_only(self) -> RingdownFits:
         """These fits with the decay times of fits that did not converge set to NaN (left out).
@@ -656,13 +671,16 @@ class RingdownFits:
     def to_csv(self) -> str:
         """The fit table as CSV text (``bayes-tfcrds fit``).
 
-        nu_hz, t_cut_s, tau_s, tau_u_s, tau_u_noise_s, tau_u_h_s, chi2_red, status; SI units.
+        nu_hz, t_cut_s, tau_s, tau_u_s, tau_u_noise_s, tau_u_h_s, chi2_red, noise_kappa, status;
+        SI units.
         tau_u_s is the standard uncertainty of tau (:attr:`tau_u_total_s`): the noise part
         tau_u_noise_s (the fit's own, given H; the attribute ``tau_u_s``) and the H part
         tau_u_h_s (fully correlated between points) in quadrature; NaN where the H part was not
-        computed for a TF-CRDS fit, 0 for plain CRDS (H not modelled).
+        computed for a TF-CRDS fit, 0 for plain CRDS (H not modelled). chi2_red is at the stated
+        noise; noise_kappa the record's variance factor of tau (1: white).
         """
         total = self.tau_u_total_s
+        kappa = self.kappa_per_point
         u_h = self.tau_u_h_s if self.tau_u_h_s is not None else np.sqrt(total**2 - self.tau_u_s**2)
         buf = io.StringIO()
         w = csv.writer(buf)
@@ -678,32 +696,38 @@ class RingdownFits:
                         f"{self.tau_u_s[i, j]:.4e}",
                         f"{u_h[i, j]:.4e}",
                         f"{self.chi2_red[i, j]:.5f}",
+                        f"{kappa[i]:.4g}",
                         self.status(i, j),
                     ]
                 )
         return buf.getvalue()
 
 
-def _per_fit_arrays(fits) -> dict:
-    """A TransientFits' per-row results under fit_ringdowns' names."""
+def _per_fit_arrays(fits, kappa_rows) -> dict:
+    """A TransientFits' per-row results under fit_ringdowns' names.
+
+    ``kappa_rows`` the noise colour's variance factor of each row: the fits weighted with
+    noise_v sqrt(kappa), so their chi2 times kappa is the chi2 at the stated noise.
+    """
     return {
         "tau": fits.tau_s,
         "tau_u": fits.tau_u_s,
         "amp": fits.amplitude_v,
         "off": fits.offset_v,
-        "chi2r": fits.chi2_red,
+        "chi2r": fits.chi2_red * kappa_rows,
     }
 
 
 #: chi2_red above which a converged TF-CRDS fit is suspected of a wrong optimum and fitted again
-#: from the record's best decay time at another t_cut. A right one has chi2_red ~ 1 (sd
-#: sqrt(2/n) ~ 0.01 on 10^4 samples; below 1 under coloured noise, weighted with kappa); a wrong
+#: from the record's best decay time at another t_cut. A right one has chi2_red ~ 1 at the stated
+#: noise (sd sqrt(2/n) ~ 0.01 on 10^4 samples, white or coloured: at the kappa-inflated weights
+#: the fits use it would read ~1/kappa, and a wrong optimum under kappa 4 would pass); a wrong
 #: one behind a strong slow tail was 5.2 (tau 6.9 us for 3.7 us, line centre of a zoo chain with
 #: f_c 10.6 kHz and tail weight 0.31, t_cut 8 us, at the chain's H).
 CHI2_SUSPECT = 1.5
 
 
-def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) -> None:
+def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid, kappa) -> None:
     """Fit again, in place, TF-CRDS fits that did not converge or sit in a wrong optimum.
 
     A TF-CRDS fit starts from the plain-exponential fit of the same truncated transient; at a late
@@ -748,8 +772,9 @@ def _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid) ->
         tau_start_s=start,
         warm_start=True,
     )
-    ok = again.converged & (~suspect[i, j] | (again.chi2_red < out["chi2r"][i, j]))
-    for key, arr in _per_fit_arrays(again).items():
+    arrays = _per_fit_arrays(again, kappa[i])
+    ok = again.converged & (~suspect[i, j] | (arrays["chi2r"] < out["chi2r"][i, j]))
+    for key, arr in arrays.items():
         out[key][i[ok], j[ok]] = arr[ok]
     conv[i[ok], j[ok]] = True
     if resid is not None:
@@ -800,6 +825,7 @@ def fit_ringdowns(
     conv = np.zeros(shape, bool)
     resid = None
     est = ringdowns.fit_noise_v is None
+    kappa = np.ones(m) if ringdowns.noise_kappa is None else np.asarray(ringdowns.noise_kappa)
     if good.size:
         fits = fit_transients(
             ringdowns.time_s,
@@ -812,7 +838,7 @@ def fit_ringdowns(
             rows_of=rows_of,
             keep_residuals=keep_residuals,
         )
-        for key, arr in _per_fit_arrays(fits).items():
+        for key, arr in _per_fit_arrays(fits, kappa[rows_of]).items():
             out[key][good] = arr.reshape(good.size, c)
         conv[good] = fits.converged.reshape(good.size, c)
         est = fits.noise_estimated
@@ -820,7 +846,7 @@ def fit_ringdowns(
             resid = np.full((m, c, ringdowns.signal_v.shape[1]), np.nan)
             resid[good] = fits.residuals_v.reshape(good.size, c, -1)
         if method == "tf-crds":
-            _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid)
+            _retry_from_other_t_cuts(ringdowns, t_cuts, tf, window, out, conv, resid, kappa)
     return RingdownFits(
         nu_hz=np.asarray(ringdowns.nu_hz),
         t_cut_s=t_cuts,
@@ -839,4 +865,5 @@ def fit_ringdowns(
         saturated=np.asarray(getattr(ringdowns, "saturated", np.zeros(m, bool)), bool),
         data=ringdowns,
         tf=tf if method == "tf-crds" else None,
+        noise_kappa=None if ringdowns.noise_kappa is None else kappa,
     )

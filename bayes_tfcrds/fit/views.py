@@ -107,6 +107,12 @@ RINGDOWN_HEADER = ("t_cut (µs)", "tau (µs)", "median u(tau)/tau (ppm)", "media
 def _ringdown_head(fits) -> str:
     window = f", {fits.window} window" if fits.window else ""
     noise = "noise estimated from the residuals" if fits.noise_estimated else "stated noise"
+    if fits.noise_kappa is not None:
+        k = fits.kappa_per_point
+        noise += (
+            f", coloured: weighted with noise_v sqrt(kappa), kappa {np.min(k):.3g}-{np.max(k):.3g}"
+            " (chi2_red at the stated noise)"
+        )
     return f"{fits.method} fits{window}: {fits.nu_hz.size} transients, {noise}"
 
 
@@ -141,6 +147,7 @@ def ringdowns_dict(fits) -> dict:
         "amplitude": {"values": _json_array(fits.amplitude_v), "unit": "V"},
         "offset": {"values": _json_array(fits.offset_v), "unit": "V"},
         "chi2_red": {"values": _json_array(fits.chi2_red), "unit": "1"},
+        "noise_kappa": {"values": _json_array(fits.kappa_per_point), "unit": "1"},
         "status": [[fits.status(i, j) for j in range(c)] for i in range(m)],
     }
 

@@ -22,7 +22,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-from bayes_tfcrds.core.linalg import central_jacobian
 from bayes_tfcrds.fit.ringdown import noise_rows
 from bayes_tfcrds.physics.forward import (
     filtered_response,
@@ -240,27 +239,11 @@ def line_gain(line_fit) -> np.ndarray:
     zero rows, as in the fit's covariance). It uses the Jacobian the fit made its covariance
     from, so that the noise propagation K W^-1 K^T is that covariance. A Jacobian made here
     again, with steps relative to the values, failed for a parameter at 0 (the HTP's eta where
-    the data need none: a 1e-36 step, round-off, a gain 600 times the fit's own u(A)); it is
-    only made for a fit that does not carry its own.
+    the data need none: a 1e-36 step, round-off, a gain 600 times the fit's own u(A)).
     """
-    spectra = line_fit.spectra
-    u = np.concatenate([s.u for s in spectra])
-    if line_fit.jacobian is not None:
-        # K = cov J^T W: the stored Jacobian is J / u
-        return line_fit.cov @ (line_fit.jacobian / u[:, None]).T
-    theta = np.asarray(line_fit.values, float)
-    model = model_of(line_fit)
-    scale = np.array(
-        [
-            line_fit.doppler_hwhm_hz if n == "position_offset_hz" else max(abs(v), 1e-30)
-            for n, v in zip(line_fit.names, theta)
-        ]
-    )
-    steps = 1e-6 * np.maximum(np.abs(theta), 1e-3 * scale)
-    jac = central_jacobian(lambda th: np.concatenate(model.predict(th, spectra)), theta, steps)
-    jw = jac / u[:, None] ** 2
-    # K = cov J^T W with the fit's covariance (zero rows/cols for parameters at a bound)
-    return line_fit.cov @ jw.T
+    u = np.concatenate([s.u for s in line_fit.spectra])
+    # K = cov J^T W: the stored Jacobian is J / u
+    return line_fit.cov @ (line_fit.jacobian / u[:, None]).T
 
 
 def model_of(line_fit):

@@ -20,20 +20,26 @@ def _fit(path, out, capsys):
     err = capsys.readouterr().err
     with open(out) as fh:
         rows = list(csv.DictReader(fh))
-    return err, np.array([float(r["tau_u_noise_s"]) for r in rows])
+    col = lambda name: np.array([float(r[name]) for r in rows])  # noqa: E731
+    return err, col("tau_u_noise_s"), col("chi2_red"), col("noise_kappa")
 
 
 def test_fit_flags_coloured_noise_and_widens_u_tau(tmp_path, capsys):
     white, coloured = tmp_path / "w.h5", tmp_path / "c.h5"
     _simulate(white, "white")
     _simulate(coloured, "lowpass:f_hz=5e6,order=2")
-    err_w, u_w = _fit(white, tmp_path / "w.csv", capsys)
-    err_c, u_c = _fit(coloured, tmp_path / "c.csv", capsys)
+    err_w, u_w, chi2_w, kappa_w = _fit(white, tmp_path / "w.csv", capsys)
+    err_c, u_c, chi2_c, kappa_c = _fit(coloured, tmp_path / "c.csv", capsys)
     assert "white: u(tau) from the stated noise" in err_w
     assert "COLOURED" in err_c
     # same seed, same per-sample noise: u(tau) grows by sqrt(kappa) = sqrt(4.5) = 2.1 (kappa of
     # a 5 MHz 2nd-order low-pass sampled at 50 MHz; estimated within a few %)
     assert 1.9 < np.median(u_c / u_w) < 2.35
+    # the CSV says why: kappa per record (1 where white), and chi2_red at the stated per-sample
+    # noise, which the colour leaves as it is (~1; at the fits' weights it would read 1/4.5).
+    # Its sd over 41 records of ~6000 correlated samples is < 0.01: 0.1 is a wide, safe band
+    assert np.all(kappa_w == 1) and np.all((kappa_c > 3.5) & (kappa_c < 5.5))
+    assert abs(np.median(chi2_w) - 1) < 0.1 and abs(np.median(chi2_c) - 1) < 0.1
 
 
 def test_linefit_records_the_noise_diagnosis(tmp_path, capsys):

@@ -8,7 +8,7 @@ import pytest
 from scipy import fft as sfft
 
 from bayes_tfcrds.fit.refine import refine_transfer_function
-from bayes_tfcrds.fit.ringdown import fit_ringdowns, fit_transients
+from bayes_tfcrds.fit.ringdown import CHI2_SUSPECT, fit_ringdowns, fit_transients
 from bayes_tfcrds.physics.detection_chain import chain_from_tf
 from bayes_tfcrds.physics.forward import extinction_grid, input_spectrum, ringdown_model
 from bayes_tfcrds.physics.transfer_function import TFParams
@@ -244,6 +244,31 @@ def test_a_converged_fit_in_a_wrong_optimum_is_fitted_again_from_the_record_s_be
     # the right optimum: chi2_red 1 within its sd sqrt(2/n) ~ 0.01 and a little H-free misfit
     assert np.all(fits.chi2_red < 1.1)
     # 27 pulls of a calibrated u: none beyond 4.5 (the wrong optimum's is ~600)
+    assert np.all(np.abs((fits.tau_s - tau_true[:, None]) / fits.tau_u_s) < 4.5)
+
+
+def test_a_wrong_optimum_under_coloured_noise_is_found_by_its_chi2_at_the_stated_noise():
+    # The chain of the test above, with the detector noise through a 2 MHz second-order low-pass
+    # (kappa ~ 10, from the package's own diagnosis). The fits weight with noise_v sqrt(kappa),
+    # where the wrong optimum's chi2_red (5.1 at the stated noise) reads ~0.5 and escaped the
+    # retry; chi2_red is now at the stated noise, whatever the weights, and the retry sees it.
+    from bayes_tfcrds.fit.noise import account_for_noise
+    from bayes_tfcrds.simulate.noise import parse_noise
+
+    tf = TFParams(f_c_hz=10572.5, a_r=2.2152, f_r_hz=2.9023e6, gamma_r=1.14, n_r=2.0)
+    camp = Campaign(n_points=9, n_avg=20, noise=parse_noise("lowpass:f_hz=2e6,order=2"))
+    bundle, truth = simulate_campaign([ChainPreset("Z", "zoo", tf)], np.random.default_rng(0), camp)
+    config, diagnosis = account_for_noise(bundle.configs["Z"], tf)
+    assert diagnosis.kappa_applied and diagnosis.kappa_median > 5.1 / CHI2_SUSPECT
+    tau_true = np.asarray(truth["configs"]["Z"]["tau_s"])
+    fits = fit_ringdowns(config.ringdowns, [2e-6, 4e-6, 8e-6], "tf-crds", tf)
+    assert fits.converged.all()
+    np.testing.assert_array_equal(fits.kappa_per_point, diagnosis.kappa)
+    # at the stated noise the right optimum's chi2_red is ~1 with sd sqrt(2 sum rho_k^2 / n)
+    # ~ 0.04 (the low-passed samples are correlated over ~4 samples; 1.03-1.09 on seeds 0-2):
+    # below 1.3 (the wrong optimum's is 5.1)
+    assert np.all(fits.chi2_red < 1.3)
+    # u(tau) carries sqrt(kappa): 27 pulls, none beyond 4.5 (the wrong optimum's ~200)
     assert np.all(np.abs((fits.tau_s - tau_true[:, None]) / fits.tau_u_s) < 4.5)
 
 
